@@ -1,0 +1,139 @@
+"""Experts that act in the Lift env: a scripted controller with privileged state, or any LeRobot policy.
+
+Every expert returns actions in robosuite's normalised controller units (`[px, py, pz, rx, ry, rz,
+gripper]` in [-1, 1]), because that is where the paper adds its noise (method.md section 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Protocol
+
+import numpy as np
+
+from lerobot_bcrl import geometry
+from lerobot_bcrl.envs import controller
+from lerobot_bcrl.features import STATE_EEF_POS, STATE_EEF_QUAT
+
+
+class Expert(Protocol):
+    def reset(self) -> None: ...
+
+    def act(self, observation: dict) -> np.ndarray:
+        """Controller-unit action (7,) for one env observation (unbatched)."""
+        ...
+
+
+class Phase(IntEnum):
+    APPROACH = 0
+    DESCEND = 1
+    CLOSE = 2
+    LIFT = 3
+
+
+@dataclass
+class ScriptedLiftExpert:
+    """Approach above the cube, descend, close, lift, hold; retries if the cube slips out."""
+
+    hover_height_m: float = 0.06  # above the cube centre before descending
+    grasp_depth_m: float = 0.005  # below the cube centre for the grip site
+    lift_height_m: float = 0.15  # above the cube's start height
+    close_steps: int = 8  # control steps spent closing the gripper
+    position_gain: float = 1.0  # fraction of the position error commanded per step
+    yaw_gain: float = 1.0  # fraction of the yaw error commanded per step
+
+    def reset(self) -> None:
+        self.phase = Phase.APPROACH
+        self._close_count = 0
+        self._cube_start_pos: np.ndarray | None = None
+
+    def act(self, observation: dict) -> np.ndarray:
+        state = np.asarray(observation["agent_pos"], dtype=np.float64)
+        env_state = np.asarray(observation["environment_state"], dtype=np.float64)
+        eef_pos, eef_quat = state[STATE_EEF_POS], state[STATE_EEF_QUAT]
+        cube_pos, cube_quat = env_state[0:3], env_state[3:7]
+        if self._cube_start_pos is None:
+            self._cube_start_pos = cube_pos.copy()
+
+        gripper = geometry.GRIPPER_OPEN
+        if self.phase == Phase.APPROACH:
+            target = cube_pos + [0.0, 0.0, self.hover_height_m]
+            if np.linalg.norm((target - eef_pos)[:2]) < 0.008 and abs(target[2] - eef_pos[2]) < 0.02:
+                self.phase = Phase.DESCEND
+        if self.phase == Phase.DESCEND:
+            target = cube_pos - [0.0, 0.0, self.grasp_depth_m]
+            if np.linalg.norm((target - eef_pos)[:2]) > 0.02:  # pushed the cube: hover again
+                self.phase = Phase.APPROACH
+                target = cube_pos + [0.0, 0.0, self.hover_height_m]
+            elif abs(target[2] - eef_pos[2]) < 0.008:
+                self.phase = Phase.CLOSE
+        if self.phase == Phase.CLOSE:
+            target = eef_pos
+            gripper = geometry.GRIPPER_CLOSED
+            self._close_count += 1
+            if self._close_count >= self.close_steps:
+                self.phase = Phase.LIFT
+        if self.phase == Phase.LIFT:
+            target = self._cube_start_pos + [0.0, 0.0, self.lift_height_m]
+            gripper = geometry.GRIPPER_CLOSED
+            if np.linalg.norm(cube_pos - eef_pos) > 0.04:  # dropped it: start over
+                self.phase = Phase.APPROACH
+                self._close_count = 0
+                gripper = geometry.GRIPPER_OPEN
+
+        delta_pos_m = self.position_gain * (target - eef_pos)
+        delta_quat = self._yaw_alignment(eef_quat, cube_quat) if self.phase <= Phase.DESCEND else None
+        if delta_quat is None:
+            delta_quat = geometry.IDENTITY_QUAT_XYZW
+        action, _ = geometry.make_delta_action(delta_pos_m, delta_quat, gripper)
+        controller_action, _ = controller.delta_action_to_controller(action)
+        return controller_action
+
+    def _yaw_alignment(self, eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> np.ndarray:
+        """Rotation about the world z axis that lines the fingers up with the nearest cube face."""
+        eef_yaw = _yaw_of(eef_quat_xyzw)
+        cube_yaw = _yaw_of(cube_quat_xyzw)
+        # A cube is symmetric every 90 degrees: wrap the error into [-45, 45) degrees.
+        error = (cube_yaw - eef_yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4
+        return geometry.rotvec_to_quat(np.array([0.0, 0.0, self.yaw_gain * error]))
+
+
+def _yaw_of(quat_xyzw: np.ndarray) -> float:
+    """Heading of the body's x axis projected on the world xy plane."""
+    x, y, z, w = geometry.quat_normalize(quat_xyzw)
+    x_axis_x = 1 - 2 * (y * y + z * z)
+    x_axis_y = 2 * (x * y + z * w)
+    return float(np.arctan2(x_axis_y, x_axis_x))
+
+
+class PolicyExpert:
+    """Any LeRobot policy checkpoint (e.g. one of ours) as the expert: its 8-D actions in controller units."""
+
+    def __init__(self, policy_path: str, device: str = "cpu"):
+        import torch
+        from lerobot.envs.utils import preprocess_observation
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.configs.policies import PreTrainedConfig
+
+        config = PreTrainedConfig.from_pretrained(policy_path)
+        config.device = device
+        self._policy = get_policy_class(config.type).from_pretrained(policy_path, config=config)
+        self._pre, self._post = make_pre_post_processors(config, pretrained_path=policy_path)
+        self._preprocess_observation = preprocess_observation
+        self._torch = torch
+
+    def reset(self) -> None:
+        self._policy.reset()
+
+    def act(self, observation: dict) -> np.ndarray:
+        batch = self._preprocess_observation(_add_batch_dim(observation))
+        batch["task"] = [""]
+        with self._torch.inference_mode():
+            action = self._post(self._policy.select_action(self._pre(batch)))
+        controller_action, _ = controller.delta_action_to_controller(action[0].cpu().numpy())
+        return controller_action
+
+
+def _add_batch_dim(observation: dict) -> dict:
+    return {k: _add_batch_dim(v) if isinstance(v, dict) else np.asarray(v)[None] for k, v in observation.items()}

@@ -1,0 +1,189 @@
+"""`bcrl-record`: roll out a (noisy) expert in the Lift env and write a LeRobotDataset v3.
+
+Example:
+    bcrl-record --repo_id=local/lift_sigma0.1 --root=data/lift_sigma0.1 --n_episodes=50 --sigma=0.1
+Every episode is kept, failures included: the data is non-optimal on purpose (method.md section 1).
+"""
+
+from __future__ import annotations
+
+import logging
+import shlex
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+from tqdm import tqdm
+
+from lerobot_bcrl import features as F
+from lerobot_bcrl.envs import controller
+from dataset_tools.experts import Expert, PolicyExpert, ScriptedLiftExpert
+from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise, beta_demonstrators
+from dataset_tools.summary import print_summary, summarize
+from dataset_tools.writer import (
+    add_episode_columns,
+    atomic_dataset_dir,
+    default_root,
+    write_bcrl_meta,
+    write_episode,
+)
+
+
+@dataclass
+class BetaDemonstratorsConfig:
+    n: int = 0  # number of simulated operators with Beta-distributed noise (0: off)
+    max_std: float = 0.2  # noise std of operator i is max_std * Beta(a, b)
+    a: float = 2.0
+    b: float = 5.0
+    max_abs_mean: float = 0.0  # per-operator bias drawn uniformly in [-max_abs_mean, max_abs_mean]
+
+
+@dataclass
+class RecordConfig:
+    repo_id: str = "local/bcrl_lift"  # dataset id (also the folder name under $HF_LEROBOT_HOME)
+    root: Path | None = None  # where to write; default $HF_LEROBOT_HOME/<repo_id>
+    n_episodes: int = 10
+    seed: int = 0  # episode i resets the env with seed + i; noise is seeded from (seed, i)
+    sigma: float = 0.1  # the paper's single demonstrator: N(0, sigma) on every controller action
+    # Several demonstrators (overrides sigma); episode i is recorded by demonstrator i % len(...).
+    demonstrators: list[DemonstratorConfig] = field(default_factory=list)
+    beta_demonstrators: BetaDemonstratorsConfig = field(default_factory=BetaDemonstratorsConfig)
+    expert: str = "scripted"  # "scripted", or the path of a LeRobot policy checkpoint (pretrained_model)
+    images: bool = True  # record the agentview camera (False: low-dim dataset)
+    video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
+    image_size: int = 128
+    cheap_render: bool = True  # no shadows/reflections: ~3x faster software rendering
+    dense_reward: bool = False  # store robosuite's shaped reward instead of the sparse one
+    overwrite: bool = False  # replace an existing dataset at root
+    device: str = "cpu"  # for a policy expert
+
+    def resolved_demonstrators(self) -> list[DemonstratorConfig]:
+        if self.demonstrators:
+            return list(self.demonstrators)
+        b = self.beta_demonstrators
+        if b.n > 0:
+            return beta_demonstrators(b.n, b.max_std, b.a, b.b, b.max_abs_mean, seed=self.seed)
+        return [DemonstratorConfig(noise_std=self.sigma)]
+
+
+def make_expert(cfg: RecordConfig) -> Expert:
+    if cfg.expert == "scripted":
+        return ScriptedLiftExpert()
+    return PolicyExpert(cfg.expert, device=cfg.device)
+
+
+def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> tuple[dict, dict]:
+    """One episode: (frames as arrays keyed by dataset feature, episode statistics)."""
+    observation, _ = env.reset(seed=seed)
+    expert.reset()
+    columns: dict[str, list] = {k: [] for k in (F.STATE_KEY, F.ENV_STATE_KEY, F.ACTION_KEY, F.AUX_EEF_POS_KEY)}
+    columns.update({F.REWARD_KEY: [], F.DONE_KEY: [], F.SUCCESS_KEY: []})
+    if "pixels" in observation:
+        columns[F.IMAGE_KEY] = []
+    n_clamped = 0
+    steps_to_lift = -1
+    done = False
+    while not done:
+        noisy = np.clip(expert.act(observation) + noise.sample(), -1.0, 1.0)
+        action, clamped = controller.controller_to_delta_action(noisy)
+        n_clamped += int(clamped)
+        next_observation, reward, terminated, truncated, info = env.step(action)
+        done = terminated or truncated
+        columns[F.STATE_KEY].append(observation["agent_pos"])
+        columns[F.ENV_STATE_KEY].append(observation["environment_state"])
+        columns[F.AUX_EEF_POS_KEY].append(observation["agent_pos"][F.STATE_EEF_POS])
+        columns[F.ACTION_KEY].append(action)
+        columns[F.REWARD_KEY].append([reward])
+        columns[F.DONE_KEY].append([done])
+        columns[F.SUCCESS_KEY].append([info["is_success"]])
+        if F.IMAGE_KEY in columns:
+            columns[F.IMAGE_KEY].append(observation["pixels"][F.CAMERA_NAME])
+        if info["is_success"] and steps_to_lift < 0:
+            steps_to_lift = len(columns[F.ACTION_KEY])
+        observation = next_observation
+    frames = {k: np.stack(v) for k, v in columns.items()}
+    stats = {
+        "episode_return": float(frames[F.REWARD_KEY].sum()),
+        "success": bool(frames[F.SUCCESS_KEY].any()),
+        "steps_to_lift": steps_to_lift,
+        "n_clamped_actions": n_clamped,
+    }
+    return frames, stats
+
+
+def record(cfg: RecordConfig) -> Path:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_bcrl.envs.lift import TASK_DESCRIPTION, LiftEnv
+
+    root = Path(cfg.root) if cfg.root is not None else default_root(cfg.repo_id)
+    demonstrators = cfg.resolved_demonstrators()
+    env = LiftEnv(
+        obs_type="pixels_agent_pos" if cfg.images else "agent_pos",
+        image_size=cfg.image_size,
+        cheap_render=cfg.cheap_render,
+        dense_reward=cfg.dense_reward,
+    )
+    expert = make_expert(cfg)
+    rows = []
+    try:
+        with atomic_dataset_dir(root, overwrite=cfg.overwrite) as tmp_root:
+            dataset = LeRobotDataset.create(
+                repo_id=cfg.repo_id,
+                fps=env.metadata["render_fps"],
+                features=F.dataset_features(cfg.image_size if cfg.images else None, cfg.video),
+                root=tmp_root,
+                robot_type="sawyer",
+                use_videos=cfg.video,
+            )
+            progress = tqdm(range(cfg.n_episodes), desc="recording episodes", unit="ep")
+            for episode_index in progress:
+                demonstrator_id = episode_index % len(demonstrators)
+                demonstrator = demonstrators[demonstrator_id]
+                noise = DemonstratorNoise(demonstrator, controller.CONTROLLER_ACTION_DIM, [cfg.seed, episode_index])
+                env_seed = cfg.seed + episode_index
+                frames, stats = record_episode(env, expert, noise, env_seed)
+                write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
+                rows.append(
+                    {
+                        "episode_index": episode_index,
+                        **stats,
+                        "demonstrator_id": demonstrator_id,
+                        "noise_std": demonstrator.noise_std,
+                        "noise_mean": demonstrator.noise_mean,
+                        "noise_correlation": demonstrator.noise_correlation,
+                        "seed": env_seed,
+                    }
+                )
+                n_success = sum(r["success"] for r in rows)
+                progress.set_postfix(success=f"{n_success}/{len(rows)}", ret=f"{stats['episode_return']:.0f}")
+            dataset.finalize()
+            add_episode_columns(tmp_root, rows)
+            write_bcrl_meta(
+                tmp_root,
+                {
+                    "source": "simulated expert (robosuite Lift, Sawyer)",
+                    "command": shlex.join(["bcrl-record", *sys.argv[1:]]),
+                    "expert": cfg.expert,
+                    "demonstrators": [asdict(d) for d in demonstrators],
+                    "fps": env.metadata["render_fps"],
+                    "action_layout": F.ACTION_NAMES_DOC,
+                    "record_config": draccus.encode(cfg),
+                },
+            )
+    finally:
+        env.close()
+    return root
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING)
+    cfg = draccus.parse(RecordConfig)
+    root = record(cfg)
+    print_summary(summarize(root), root)
+
+
+if __name__ == "__main__":
+    main()

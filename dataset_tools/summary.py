@@ -1,0 +1,107 @@
+"""`bcrl-summary`: what a Lift dataset holds (episodes, success rate, returns, per demonstrator).
+
+Example: bcrl-summary --root=data/lift_sigma0.1
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import draccus
+import numpy as np
+import pandas as pd
+
+from dataset_tools.writer import default_root, read_bcrl_meta
+
+
+def load_episode_table(root: Path) -> pd.DataFrame:
+    paths = sorted((Path(root) / "meta" / "episodes").rglob("*.parquet"))
+    if not paths:
+        raise FileNotFoundError(f"{root}: no meta/episodes/*.parquet; is this a LeRobotDataset v3 folder?")
+    table = pd.concat([pd.read_parquet(p) for p in paths], ignore_index=True)
+    return table[[c for c in table.columns if not c.startswith(("stats/", "videos/", "data/", "meta/"))]]
+
+
+def _mean_ci95(values: np.ndarray) -> tuple[float, float]:
+    values = np.asarray(values, dtype=np.float64)
+    if len(values) < 2:
+        return float(values.mean()) if len(values) else float("nan"), float("nan")
+    return float(values.mean()), float(1.96 * values.std(ddof=1) / np.sqrt(len(values)))
+
+
+def summarize(root: Path) -> dict:
+    root = Path(root)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    episodes = load_episode_table(root)
+    summary = {
+        "root": str(root),
+        "codebase_version": info.get("codebase_version"),
+        "fps": info["fps"],
+        "episodes": int(info["total_episodes"]),
+        "frames": int(info["total_frames"]),
+        "features": sorted(info["features"]),
+    }
+    if "episode_return" in episodes:
+        mean, ci = _mean_ci95(episodes["episode_return"])
+        lifted = episodes.loc[episodes["steps_to_lift"] >= 0, "steps_to_lift"]
+        summary.update(
+            success_rate=float(episodes["success"].mean()),
+            mean_return=mean,
+            return_ci95=ci,
+            mean_steps_to_lift=float(lifted.mean()) if len(lifted) else None,
+            by_demonstrator=[
+                {
+                    "demonstrator_id": int(d),
+                    "noise_std": float(group["noise_std"].iloc[0]),
+                    "episodes": len(group),
+                    "success_rate": float(group["success"].mean()),
+                    "mean_return": float(group["episode_return"].mean()),
+                }
+                for d, group in episodes.groupby("demonstrator_id")
+            ],
+        )
+    meta = read_bcrl_meta(root)
+    if meta:
+        summary["made_by"] = meta.get("command")
+    return summary
+
+
+def print_summary(summary: dict, root: Path | None = None) -> None:
+    print(f"dataset: {summary['root']} (LeRobotDataset {summary['codebase_version']}, {summary['fps']} fps)")
+    print(f"  episodes: {summary['episodes']}   frames: {summary['frames']}")
+    print(f"  features: {', '.join(summary['features'])}")
+    if "success_rate" in summary:
+        print(f"  success rate: {summary['success_rate']:.0%}")
+        print(f"  mean return: {summary['mean_return']:.1f} +/- {summary['return_ci95']:.1f} (95% CI; max 450)")
+        if summary["mean_steps_to_lift"] is not None:
+            print(f"  mean steps to lift (successful episodes): {summary['mean_steps_to_lift']:.1f}")
+        if len(summary["by_demonstrator"]) > 1:
+            for d in summary["by_demonstrator"]:
+                print(
+                    f"    demonstrator {d['demonstrator_id']}: sigma={d['noise_std']:.3f} episodes={d['episodes']}"
+                    f" success={d['success_rate']:.0%} return={d['mean_return']:.1f}"
+                )
+    if summary.get("made_by"):
+        print(f"  made by: {summary['made_by']}")
+
+
+@dataclass
+class SummaryConfig:
+    repo_id: str = "local/bcrl_lift"
+    root: Path | None = None  # default $HF_LEROBOT_HOME/<repo_id>
+    json: bool = False  # print one JSON line instead of text
+
+
+def main() -> None:
+    cfg = draccus.parse(SummaryConfig)
+    summary = summarize(cfg.root if cfg.root is not None else default_root(cfg.repo_id))
+    if cfg.json:
+        print(json.dumps(summary))
+    else:
+        print_summary(summary)
+
+
+if __name__ == "__main__":
+    main()

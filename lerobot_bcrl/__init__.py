@@ -1,0 +1,8 @@
+"""lerobot-bcrl: BC+RL (behavioural cloning + PPO) from non-optimal demonstrations, as a LeRobot plugin.
+
+Importing the package registers with LeRobot the env type `bcrl_lift` (and its gymnasium id).
+"""
+
+from lerobot_bcrl import envs  # noqa: F401  (registers EnvConfig "bcrl_lift" and the gym id)
+
+__version__ = "0.1.0"

@@ -1,0 +1,168 @@
+"""robosuite Lift with the Sawyer arm as a gymnasium env with LeRobot's observation keys.
+
+Actions are the 8-D delta layout of method.md (`lerobot_bcrl.geometry.ACTION_NAMES`); observations are
+`pixels` (agentview, uint8 HWC, rendered once per control step), `agent_pos` and `environment_state`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from lerobot_bcrl import geometry
+from lerobot_bcrl.envs import controller
+from lerobot_bcrl.envs.rendering import CameraRenderer
+from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, STATE_DIM
+
+import robosuite  # noqa: E402  (after rendering.py has set MUJOCO_GL)
+
+# robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None).
+LIFT_REWARD = 2.25
+TASK_DESCRIPTION = "Lift the red cube off the table."
+OBS_TYPES = ("pixels_agent_pos", "agent_pos")
+
+
+class LiftEnv(gym.Env):
+    """Sawyer Lift, horizon 200 at 20 Hz, sparse reward (2.25 per lifted step) unless `dense_reward`."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(
+        self,
+        obs_type: str = "pixels_agent_pos",
+        image_size: int = 128,
+        cheap_render: bool = True,
+        horizon: int = 200,
+        control_freq: int = 20,
+        dense_reward: bool = False,
+        terminate_on_success: bool = False,
+        render_mode: str = "rgb_array",
+        render_size: int = 128,
+    ):
+        if obs_type not in OBS_TYPES:
+            raise ValueError(f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}")
+        self.obs_type = obs_type
+        self.image_size = image_size
+        self.horizon = horizon
+        self.terminate_on_success = terminate_on_success
+        self.render_mode = render_mode
+        self.render_size = render_size
+        self.task_description = TASK_DESCRIPTION
+        self.task = "lift"
+        self.metadata = {**self.metadata, "render_fps": control_freq}
+
+        self._sim_env = robosuite.make(
+            "Lift",
+            robots="Sawyer",
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            use_object_obs=True,
+            reward_scale=None,
+            reward_shaping=dense_reward,
+            control_freq=control_freq,
+            horizon=horizon,
+            ignore_done=True,  # the horizon is ours (truncation), robosuite must not refuse steps
+            hard_reset=False,  # reloading the model every reset costs ~0.3 s and invalidates renderers
+        )
+        self._model = self._sim_env.sim.model._model
+        self._data = self._sim_env.sim.data._data
+        self._cheap_render = cheap_render
+        self._camera = (
+            CameraRenderer(self._model, CAMERA_NAME, image_size, image_size, cheap=cheap_render)
+            if obs_type == "pixels_agent_pos"
+            else None
+        )
+        self._render_camera: CameraRenderer | None = None
+        self._pixels: np.ndarray | None = None
+        # robosuite draws cube placement and joint noise from the global numpy RNG; each env keeps its own
+        # state and swaps it in around reset, so that seeding one env never disturbs another.
+        self._robosuite_rng_state = np.random.RandomState().get_state()
+        self._step_count = 0
+        self.n_clamped_actions = 0
+
+        spaces: dict[str, gym.Space] = {
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
+            "environment_state": gym.spaces.Box(-np.inf, np.inf, (ENV_STATE_DIM,), np.float32),
+        }
+        if self._camera is not None:
+            # A dict of cameras: LeRobot maps `pixels/<cam>` to `observation.images.<cam>`.
+            spaces["pixels"] = gym.spaces.Dict(
+                {CAMERA_NAME: gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)}
+            )
+        self.observation_space = gym.spaces.Dict(spaces)
+        low = np.array([-geometry.MAX_DELTA_POS_M] * 3 + [-1.0] * 4 + [-1.0], np.float32)
+        high = np.array([geometry.MAX_DELTA_POS_M] * 3 + [1.0] * 4 + [1.0], np.float32)
+        self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
+
+    # -- gymnasium API ---------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self._robosuite_rng_state = np.random.RandomState(seed).get_state()
+        outer_state = np.random.get_state()
+        np.random.set_state(self._robosuite_rng_state)
+        try:
+            sim_obs = self._sim_env.reset()
+        finally:
+            self._robosuite_rng_state = np.random.get_state()
+            np.random.set_state(outer_state)
+        self._step_count = 0
+        return self._observation(sim_obs), {"is_success": False}
+
+    def step(self, action: np.ndarray):
+        controller_action, clamped = controller.delta_action_to_controller(action)
+        self.n_clamped_actions += int(clamped)
+        sim_obs, reward, _, _ = self._sim_env.step(controller_action)
+        self._step_count += 1
+        is_success = bool(self._sim_env._check_success())
+        terminated = self.terminate_on_success and is_success
+        truncated = self._step_count >= self.horizon
+        info = {"is_success": is_success, "action_clamped": clamped}
+        return self._observation(sim_obs), float(reward), terminated, truncated, info
+
+    def render(self) -> np.ndarray:
+        if self._camera is not None and self.render_size == self.image_size and self._pixels is not None:
+            return self._pixels  # already rendered this control step
+        if self._render_camera is None:
+            self._render_camera = CameraRenderer(
+                self._model, CAMERA_NAME, self.render_size, self.render_size, cheap=self._cheap_render
+            )
+        return self._render_camera.render(self._data)
+
+    def close(self) -> None:
+        for renderer in (self._camera, self._render_camera):
+            if renderer is not None:
+                renderer.close()
+        self._camera = self._render_camera = None
+        self._sim_env.close()
+
+    # -- privileged access (experts, recorders, tests) --------------------------------------------------
+    @property
+    def sim_env(self):
+        """The underlying robosuite env."""
+        return self._sim_env
+
+    @property
+    def cube_lifted(self) -> bool:
+        return bool(self._sim_env._check_success())
+
+    def _observation(self, sim_obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        agent_pos = np.concatenate(
+            [
+                sim_obs["robot0_eef_pos"],
+                sim_obs["robot0_eef_quat_site"],
+                sim_obs["robot0_gripper_qpos"],
+                sim_obs["robot0_joint_pos"],
+            ]
+        ).astype(np.float32)
+        environment_state = np.concatenate(
+            [sim_obs["cube_pos"], sim_obs["cube_quat"], sim_obs["cube_pos"] - sim_obs["robot0_eef_pos"]]
+        ).astype(np.float32)
+        obs: dict[str, Any] = {"agent_pos": agent_pos, "environment_state": environment_state}
+        if self._camera is not None:
+            self._pixels = self._camera.render(self._data)
+            obs["pixels"] = {CAMERA_NAME: self._pixels}
+        return obs

@@ -1,0 +1,64 @@
+"""Feature names and layouts shared by the env, the datasets and the policy.
+
+Every dataset this project writes (simulated or converted) has these keys; the policy reads them by name.
+"""
+
+from __future__ import annotations
+
+from lerobot_bcrl.geometry import ACTION_DIM, ACTION_NAMES
+
+CAMERA_NAME = "agentview"
+IMAGE_KEY = f"observation.images.{CAMERA_NAME}"
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+ACTION_KEY = "action"
+# Auxiliary labels (method.md section 1). Not `observation.*`: they are targets, never policy inputs.
+AUX_EEF_POS_KEY = "aux.eef_pos"
+AUX_GRASP_POS_KEY = "aux.grasp_pos"
+AUX_GRASP_VALID_KEY = "aux.grasp_valid"
+REWARD_KEY = "next.reward"
+DONE_KEY = "next.done"
+SUCCESS_KEY = "next.success"
+
+STATE_NAMES = (
+    ["eef_pos_x", "eef_pos_y", "eef_pos_z", "eef_quat_x", "eef_quat_y", "eef_quat_z", "eef_quat_w"]
+    + ["gripper_qpos_0", "gripper_qpos_1"]
+    + [f"joint_pos_{i}" for i in range(7)]
+)
+ENV_STATE_NAMES = (
+    ["cube_pos_x", "cube_pos_y", "cube_pos_z", "cube_quat_x", "cube_quat_y", "cube_quat_z", "cube_quat_w"]
+    + ["eef_to_cube_x", "eef_to_cube_y", "eef_to_cube_z"]
+)
+STATE_DIM = len(STATE_NAMES)
+ENV_STATE_DIM = len(ENV_STATE_NAMES)
+# Slices of observation.state
+STATE_EEF_POS = slice(0, 3)
+STATE_EEF_QUAT = slice(3, 7)
+
+
+def dataset_features(image_size: int | None, use_videos: bool) -> dict[str, dict]:
+    """LeRobotDataset `features` for a Lift dataset; `image_size=None` gives a low-dim dataset."""
+    features: dict[str, dict] = {
+        STATE_KEY: {"dtype": "float32", "shape": (STATE_DIM,), "names": STATE_NAMES},
+        ENV_STATE_KEY: {"dtype": "float32", "shape": (ENV_STATE_DIM,), "names": ENV_STATE_NAMES},
+        ACTION_KEY: {"dtype": "float32", "shape": (ACTION_DIM,), "names": ACTION_NAMES},
+        AUX_EEF_POS_KEY: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]},
+        AUX_GRASP_POS_KEY: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]},
+        AUX_GRASP_VALID_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+        REWARD_KEY: {"dtype": "float32", "shape": (1,), "names": None},
+        DONE_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+        SUCCESS_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+    }
+    if image_size is not None:
+        features[IMAGE_KEY] = {
+            "dtype": "video" if use_videos else "image",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channel"],
+        }
+    return features
+
+ACTION_NAMES_DOC = (
+    "[dx, dy, dz, qx, qy, qz, qw, gripper]: end-effector position delta in metres (robot base frame), "
+    "rotation delta as a unit quaternion q_next * q_now^-1 with qw >= 0, gripper -1 open / +1 closed; "
+    "|delta_pos| <= 0.05 m, rotation <= pi/40 rad"
+)

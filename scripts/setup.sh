@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# One-time setup: find Python 3.12, install the Debian libraries for headless rendering and video
+# decoding, create .venv and install this package into it. Safe to run again (it skips finished work).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+find_python312() {
+  local candidates=()
+  [ -n "${PYTHON:-}" ] && candidates+=("$PYTHON")
+  command -v python3.12 >/dev/null 2>&1 && candidates+=("$(command -v python3.12)")
+  if command -v pyenv >/dev/null 2>&1; then
+    local root; root="$(pyenv root)"
+    for p in "$root"/versions/3.12*/bin/python3.12; do [ -x "$p" ] && candidates+=("$p"); done
+  fi
+  for p in "${candidates[@]}"; do
+    # pyenv shims exist on PATH even when they cannot run: check that the interpreter really starts.
+    if "$p" -c 'import sys; assert sys.version_info[:2] == (3, 12)' >/dev/null 2>&1; then
+      echo "$p"; return 0
+    fi
+  done
+  return 1
+}
+
+install_system_libs() {
+  # EGL (Mesa) for MuJoCo offscreen rendering; FFmpeg libraries for torchcodec's video decoding.
+  local need=()
+  for pkg in libegl1 libegl-mesa0 libgl1 libgles2 libavcodec59 libavformat59 libavutil57 libswscale6 libavdevice59 libavfilter8; do
+    dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
+  done
+  [ ${#need[@]} -eq 0 ] && return 0
+  if ! command -v apt-get >/dev/null 2>&1; then
+    echo "setup: missing system libraries (${need[*]}) and no apt-get to install them" >&2; return 1
+  fi
+  local sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo"
+  echo "setup: installing ${need[*]}"
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+}
+
+PY=$(find_python312) || {
+  echo "setup: Python 3.12 is required (lerobot 0.6.1 needs it) and none was found." >&2
+  echo "       Put python3.12 on PATH, install it with pyenv ('pyenv install 3.12'), or set PYTHON=/path/to/python3.12." >&2
+  exit 1
+}
+echo "setup: using $PY"
+install_system_libs
+
+if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then
+  rm -rf .venv
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.installed-$(cat pyproject.toml | sha1sum | cut -c1-12)
+if [ ! -f "$stamp" ]; then
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e '.[test]'
+  rm -f .venv/.installed-*; touch "$stamp"
+fi
+echo "setup: done (.venv ready)"
