@@ -37,15 +37,17 @@ class ScriptedLiftExpert:
     """Approach above the cube, descend, close, lift, hold; retries if the cube slips out."""
 
     hover_height_m: float = 0.06  # above the cube centre before descending
-    grasp_depth_m: float = 0.005  # below the cube centre for the grip site
+    grasp_depth_m: float = 0.0  # below the cube centre for the grip site
+    max_descend_steps: int = 20  # close anyway once the fingers stall (on the table or the cube)
     lift_height_m: float = 0.15  # above the cube's start height
     close_steps: int = 8  # control steps spent closing the gripper
-    position_gain: float = 1.0  # fraction of the position error commanded per step
+    position_gain: float = 2.0  # commanded delta per metre of error (OSC covers ~1/4 of a command per step)
     yaw_gain: float = 1.0  # fraction of the yaw error commanded per step
 
     def reset(self) -> None:
         self.phase = Phase.APPROACH
         self._close_count = 0
+        self._descend_count = 0
         self._cube_start_pos: np.ndarray | None = None
 
     def act(self, observation: dict) -> np.ndarray:
@@ -63,10 +65,12 @@ class ScriptedLiftExpert:
                 self.phase = Phase.DESCEND
         if self.phase == Phase.DESCEND:
             target = cube_pos - [0.0, 0.0, self.grasp_depth_m]
+            self._descend_count += 1
             if np.linalg.norm((target - eef_pos)[:2]) > 0.02:  # pushed the cube: hover again
                 self.phase = Phase.APPROACH
+                self._descend_count = 0
                 target = cube_pos + [0.0, 0.0, self.hover_height_m]
-            elif abs(target[2] - eef_pos[2]) < 0.008:
+            elif abs(target[2] - eef_pos[2]) < 0.01 or self._descend_count >= self.max_descend_steps:
                 self.phase = Phase.CLOSE
         if self.phase == Phase.CLOSE:
             target = eef_pos
@@ -79,7 +83,7 @@ class ScriptedLiftExpert:
             gripper = geometry.GRIPPER_CLOSED
             if np.linalg.norm(cube_pos - eef_pos) > 0.04:  # dropped it: start over
                 self.phase = Phase.APPROACH
-                self._close_count = 0
+                self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN
 
         delta_pos_m = self.position_gain * (target - eef_pos)

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from lerobot_bcrl import features as F
 from lerobot_bcrl.envs import controller
+from lerobot_bcrl.geometry import delta_action_from_poses
 from dataset_tools.experts import Expert, PolicyExpert, ScriptedLiftExpert
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise, beta_demonstrators
 from dataset_tools.summary import print_summary, summarize
@@ -54,6 +55,7 @@ class RecordConfig:
     images: bool = True  # record the agentview camera (False: low-dim dataset)
     video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
     image_size: int = 128
+    episode_length: int = 200  # the paper's horizon
     cheap_render: bool = True  # no shadows/reflections: ~3x faster software rendering
     dense_reward: bool = False  # store robosuite's shaped reward instead of the sparse one
     overwrite: bool = False  # replace an existing dataset at root
@@ -82,6 +84,7 @@ def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> 
     columns.update({F.REWARD_KEY: [], F.DONE_KEY: [], F.SUCCESS_KEY: []})
     if "pixels" in observation:
         columns[F.IMAGE_KEY] = []
+    proprio_actions = []
     n_clamped = 0
     steps_to_lift = -1
     done = False
@@ -100,10 +103,19 @@ def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> 
         columns[F.SUCCESS_KEY].append([info["is_success"]])
         if F.IMAGE_KEY in columns:
             columns[F.IMAGE_KEY].append(observation["pixels"][F.CAMERA_NAME])
+        proprio_action, _ = delta_action_from_poses(
+            observation["agent_pos"][F.STATE_EEF_POS],
+            observation["agent_pos"][F.STATE_EEF_QUAT],
+            next_observation["agent_pos"][F.STATE_EEF_POS],
+            next_observation["agent_pos"][F.STATE_EEF_QUAT],
+            action[7],
+        )
+        proprio_actions.append(proprio_action)
         if info["is_success"] and steps_to_lift < 0:
             steps_to_lift = len(columns[F.ACTION_KEY])
         observation = next_observation
     frames = {k: np.stack(v) for k, v in columns.items()}
+    frames[F.AUX_PROPRIO_ACTION_KEY] = np.stack(proprio_actions)
     stats = {
         "episode_return": float(frames[F.REWARD_KEY].sum()),
         "success": bool(frames[F.SUCCESS_KEY].any()),
@@ -125,6 +137,7 @@ def record(cfg: RecordConfig) -> Path:
         image_size=cfg.image_size,
         cheap_render=cfg.cheap_render,
         dense_reward=cfg.dense_reward,
+        horizon=cfg.episode_length,
     )
     expert = make_expert(cfg)
     rows = []
