@@ -7,6 +7,7 @@ Every episode is kept, failures included: the data is non-optimal on purpose (me
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shlex
 import sys
@@ -151,27 +152,34 @@ def record(cfg: RecordConfig) -> Path:
                 robot_type="sawyer",
                 use_videos=cfg.video,
             )
-            progress = tqdm(range(cfg.n_episodes), desc="recording episodes", unit="ep")
-            for episode_index in progress:
-                demonstrator_id = episode_index % len(demonstrators)
-                demonstrator = demonstrators[demonstrator_id]
-                noise = DemonstratorNoise(demonstrator, controller.CONTROLLER_ACTION_DIM, [cfg.seed, episode_index])
-                env_seed = cfg.seed + episode_index
-                frames, stats = record_episode(env, expert, noise, env_seed)
-                write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
-                rows.append(
-                    {
-                        "episode_index": episode_index,
-                        **stats,
-                        "demonstrator_id": demonstrator_id,
-                        "noise_std": demonstrator.noise_std,
-                        "noise_mean": demonstrator.noise_mean,
-                        "noise_correlation": demonstrator.noise_correlation,
-                        "seed": env_seed,
-                    }
-                )
-                n_success = sum(r["success"] for r in rows)
-                progress.set_postfix(success=f"{n_success}/{len(rows)}", ret=f"{stats['episode_return']:.0f}")
+            try:
+                progress = tqdm(range(cfg.n_episodes), desc="recording episodes", unit="ep")
+                for episode_index in progress:
+                    demonstrator_id = episode_index % len(demonstrators)
+                    demonstrator = demonstrators[demonstrator_id]
+                    noise = DemonstratorNoise(demonstrator, controller.CONTROLLER_ACTION_DIM, [cfg.seed, episode_index])
+                    env_seed = cfg.seed + episode_index
+                    frames, stats = record_episode(env, expert, noise, env_seed)
+                    write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
+                    rows.append(
+                        {
+                            "episode_index": episode_index,
+                            **stats,
+                            "demonstrator_id": demonstrator_id,
+                            "noise_std": demonstrator.noise_std,
+                            "noise_mean": demonstrator.noise_mean,
+                            "noise_correlation": demonstrator.noise_correlation,
+                            "seed": env_seed,
+                        }
+                    )
+                    n_success = sum(r["success"] for r in rows)
+                    progress.set_postfix(success=f"{n_success}/{len(rows)}", ret=f"{stats['episode_return']:.0f}")
+            except BaseException:
+                # Close LeRobot's open writers now: left to the garbage collector they would write
+                # into the temporary folder after it has been removed, and leave it behind.
+                with contextlib.suppress(Exception):
+                    dataset.finalize()
+                raise
             dataset.finalize()
             add_episode_columns(tmp_root, rows)
             write_bcrl_meta(

@@ -40,6 +40,7 @@ class LiftEnv(gym.Env):
         terminate_on_success: bool = False,
         render_mode: str = "rgb_array",
         render_size: int = 128,
+        model_seed: int = 0,
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}")
@@ -53,20 +54,14 @@ class LiftEnv(gym.Env):
         self.task = "lift"
         self.metadata = {**self.metadata, "render_fps": control_freq}
 
-        self._sim_env = robosuite.make(
-            "Lift",
-            robots="Sawyer",
-            has_renderer=False,
-            has_offscreen_renderer=False,
-            use_camera_obs=False,
-            use_object_obs=True,
-            reward_scale=None,
-            reward_shaping=dense_reward,
-            control_freq=control_freq,
-            horizon=horizon,
-            ignore_done=True,  # the horizon is ours (truncation), robosuite must not refuse steps
-            hard_reset=False,  # reloading the model every reset costs ~0.3 s and invalidates renderers
-        )
+        # robosuite draws the cube's size from the global numpy RNG when it builds the model: fix it, so
+        # that every env instance (recorder, evaluator, test) simulates the same cube.
+        outer_state = np.random.get_state()
+        np.random.seed(model_seed)
+        try:
+            self._sim_env = self._make_sim_env(control_freq, horizon, dense_reward)
+        finally:
+            np.random.set_state(outer_state)
         self._model = self._sim_env.sim.model._model
         self._data = self._sim_env.sim.data._data
         self._cheap_render = cheap_render
@@ -96,6 +91,23 @@ class LiftEnv(gym.Env):
         low = np.array([-geometry.MAX_DELTA_POS_M] * 3 + [-1.0] * 4 + [-1.0], np.float32)
         high = np.array([geometry.MAX_DELTA_POS_M] * 3 + [1.0] * 4 + [1.0], np.float32)
         self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
+
+    @staticmethod
+    def _make_sim_env(control_freq: int, horizon: int, dense_reward: bool):
+        return robosuite.make(
+            "Lift",
+            robots="Sawyer",
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            use_object_obs=True,
+            reward_scale=None,
+            reward_shaping=dense_reward,
+            control_freq=control_freq,
+            horizon=horizon,
+            ignore_done=True,  # the horizon is ours (truncation), robosuite must not refuse steps
+            hard_reset=False,  # reloading the model every reset costs ~0.3 s and invalidates renderers
+        )
 
     # -- gymnasium API ---------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
