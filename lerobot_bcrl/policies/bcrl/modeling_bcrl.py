@@ -1,0 +1,298 @@
+"""The `bcrl` network and its LeRobot policy: one model for BC (`forward`) and PPO (log-prob, entropy, value).
+
+`CNN(image) -> spatial softmax -> keypoints`, `MLP([keypoints, state]) -> trunk`; heads off the trunk:
+delta position, delta rotation, gripper logits, value; heads off the keypoints: EEF and grasp position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from lerobot.policies.pretrained import PreTrainedPolicy
+from torch import Tensor, nn
+from torch.distributions import Categorical, Normal
+
+from lerobot_bcrl.features import (
+    ACTION_KEY,
+    AUX_EEF_POS_KEY,
+    AUX_GRASP_POS_KEY,
+    AUX_GRASP_VALID_KEY,
+    ENV_STATE_KEY,
+    STATE_KEY,
+)
+from lerobot_bcrl.geometry import GRIPPER_CLOSED, GRIPPER_OPEN
+from lerobot_bcrl.policies.bcrl import losses
+from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+
+GRIPPER_OPEN_CLASS, GRIPPER_CLOSED_CLASS = 0, 1
+CONTINUOUS_DIM = 7  # [delta_pos / scale (3), delta_quat_xyzw (4)]: what the Gaussian is over
+
+
+class SpatialSoftmax(nn.Module):
+    """Expected (x, y) in [-1, 1] of each channel's softmax over pixels: one keypoint per channel.
+
+    x grows with the column, y with the row; -1 is the first pixel centre, +1 the last.
+    """
+
+    def __init__(self, learnable_temperature: bool = True, temperature: float = 1.0):
+        super().__init__()
+        log_temperature = torch.tensor(float(temperature)).log()
+        if learnable_temperature:
+            self.log_temperature = nn.Parameter(log_temperature)
+        else:
+            self.register_buffer("log_temperature", log_temperature)
+
+    def forward(self, feature_map: Tensor) -> Tensor:
+        batch, channels, height, width = feature_map.shape
+        attention = F.softmax(feature_map.flatten(2) / self.log_temperature.exp(), dim=-1)  # (B, C, H*W)
+        ys, xs = torch.meshgrid(
+            torch.linspace(-1.0, 1.0, height, device=feature_map.device, dtype=feature_map.dtype),
+            torch.linspace(-1.0, 1.0, width, device=feature_map.device, dtype=feature_map.dtype),
+            indexing="ij",
+        )
+        grid_xy = torch.stack([xs.flatten(), ys.flatten()], dim=-1)  # (H*W, 2)
+        return attention @ grid_xy  # (B, C, 2)
+
+
+class KeypointEncoder(nn.Module):
+    """Small CNN (two stride-2 convs, then stride 1) -> 1x1 conv to K maps -> spatial softmax -> (B, 2K)."""
+
+    def __init__(self, in_channels: int, cnn_channels: tuple[int, ...], num_keypoints: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        for i, out_channels in enumerate(cnn_channels):
+            kernel, stride = (5, 2) if i == 0 else (3, 2 if i == 1 else 1)
+            layers += [nn.Conv2d(in_channels, out_channels, kernel, stride, padding=kernel // 2), nn.ReLU()]
+            in_channels = out_channels
+        layers.append(nn.Conv2d(in_channels, num_keypoints, kernel_size=1))
+        self.cnn = nn.Sequential(*layers)
+        self.spatial_softmax = SpatialSoftmax()
+
+    def forward(self, image: Tensor) -> Tensor:
+        return self.spatial_softmax(self.cnn(image)).flatten(1)
+
+
+def mlp(in_dim: int, hidden_dims: tuple[int, ...], out_dim: int | None = None) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for hidden in hidden_dims:
+        layers += [nn.Linear(in_dim, hidden), nn.ReLU()]
+        in_dim = hidden
+    if out_dim is not None:
+        layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+@dataclass
+class BCRLOutputs:
+    delta_pos_scaled: Tensor  # (B, 3) delta position / delta_pos_scale_m
+    delta_quat_xyzw: Tensor  # (B, 4) unit quaternion (not yet put on the qw >= 0 cover)
+    gripper_logits: Tensor  # (B, 2) [open, closed]
+    value: Tensor  # (B,) state value for PPO
+    eef_pos_normalized: Tensor  # (B, 3) aux head, standardized by the aux.eef_pos stats
+    grasp_pos_normalized: Tensor  # (B, 3) aux head, same standardization
+
+
+class BCRLModel(nn.Module):
+    def __init__(self, config: BCRLConfig):
+        super().__init__()
+        self.config = config
+        state_dim = config.input_features[STATE_KEY].shape[0]
+        if config.uses_images:
+            image_channels = config.image_features[config.image_key].shape[0]
+            self.keypoint_encoder = KeypointEncoder(image_channels, config.cnn_channels, config.num_keypoints)
+            keypoint_dim = 2 * config.num_keypoints
+        else:
+            self.keypoint_encoder = None
+            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0]
+        self.trunk = mlp(keypoint_dim + state_dim, config.trunk_hidden_dims)
+        trunk_dim = config.trunk_hidden_dims[-1] if config.trunk_hidden_dims else keypoint_dim + state_dim
+        self.delta_pos_head = nn.Linear(trunk_dim, 3)
+        self.delta_quat_head = nn.Linear(trunk_dim, 4)
+        self.gripper_head = nn.Linear(trunk_dim, 2)
+        self.value_head = nn.Linear(trunk_dim, 1)
+        self.eef_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
+        self.grasp_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
+        # Start every rotation prediction near the identity, far from the ill-defined zero quaternion.
+        self.register_buffer("quat_offset", torch.tensor([0.0, 0.0, 0.0, 1.0]), persistent=False)
+
+    def keypoints(self, batch: dict[str, Tensor]) -> Tensor:
+        if self.keypoint_encoder is not None:
+            return self.keypoint_encoder(batch[self.config.image_key])
+        return batch[ENV_STATE_KEY]
+
+    def forward(self, batch: dict[str, Tensor]) -> BCRLOutputs:
+        keypoints = self.keypoints(batch)
+        trunk = self.trunk(torch.cat([keypoints, batch[STATE_KEY]], dim=-1))
+        delta_quat = F.normalize(self.delta_quat_head(trunk) + self.quat_offset, dim=-1)
+        return BCRLOutputs(
+            delta_pos_scaled=self.delta_pos_head(trunk),
+            delta_quat_xyzw=delta_quat,
+            gripper_logits=self.gripper_head(trunk),
+            value=self.value_head(trunk).squeeze(-1),
+            eef_pos_normalized=self.eef_pos_head(keypoints),
+            grasp_pos_normalized=self.grasp_pos_head(keypoints),
+        )
+
+
+def _stat(dataset_stats: dict | None, key: str, name: str) -> Tensor | None:
+    if not dataset_stats or key not in dataset_stats or name not in dataset_stats[key]:
+        return None
+    return torch.as_tensor(dataset_stats[key][name], dtype=torch.float32).flatten()
+
+
+class BCRLPolicy(PreTrainedPolicy):
+    config_class = BCRLConfig
+    name = "bcrl"
+
+    def __init__(self, config: BCRLConfig, dataset_stats: dict | None = None, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.model = BCRLModel(config)
+        self.log_std = nn.Parameter(torch.full((CONTINUOUS_DIM,), config.init_log_std))
+        # Buffers, saved in model.safetensors: a checkpoint keeps the statistics of the data it was trained on.
+        self.register_buffer("gripper_class_weights", self._gripper_class_weights(dataset_stats))
+        aux_mean = _stat(dataset_stats, AUX_EEF_POS_KEY, "mean")
+        aux_std = _stat(dataset_stats, AUX_EEF_POS_KEY, "std")
+        self.register_buffer("aux_pos_mean", aux_mean if aux_mean is not None else torch.zeros(3))
+        self.register_buffer("aux_pos_std", aux_std.clamp_min(1e-3) if aux_std is not None else torch.ones(3))
+
+    def _gripper_class_weights(self, dataset_stats: dict | None) -> Tensor:
+        """Balanced weights from the closed fraction: the gripper column is -1/+1, so its mean m gives (m+1)/2."""
+        action_mean = _stat(dataset_stats, ACTION_KEY, "mean")
+        if action_mean is None:
+            return torch.ones(2)  # no stats (e.g. built from an env config): overwritten by from_pretrained
+        closed_fraction = (float(action_mean[7]) - GRIPPER_OPEN) / (GRIPPER_CLOSED - GRIPPER_OPEN)
+        return losses.balanced_class_weights(closed_fraction, self.config.min_class_fraction)
+
+    # -- LeRobot API ------------------------------------------------------------------------------------
+    def get_optim_params(self):
+        return self.parameters()
+
+    def reset(self) -> None:
+        pass  # no action queue and no recurrent state
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        outputs = self.model(batch)
+        bc_loss, metrics = self.bc_loss(outputs, batch)
+        return bc_loss, metrics
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        return self.select_action(batch, **kwargs)[:, None]
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], sample: bool | None = None, **kwargs) -> Tensor:
+        """The 8-D action (B, 8): mean and argmax by default, sampled when `sample` (or the config) says so."""
+        self.eval()
+        outputs = self.model(batch)
+        if sample if sample is not None else self.config.sample_in_select_action:
+            continuous, gripper_class = self._sample(outputs)
+        else:
+            continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_quat_xyzw], dim=-1)
+            gripper_class = outputs.gripper_logits.argmax(dim=-1)
+        return self.to_env_action(continuous, gripper_class)
+
+    # -- PPO interface ----------------------------------------------------------------------------------
+    def sample_actions(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """(actions (B, 8), log_prob (B,), value (B,)); log_prob is that of the returned env action."""
+        outputs = self.model(batch)
+        with torch.no_grad():
+            actions = self.to_env_action(*self._sample(outputs))
+        log_prob, _ = self._log_prob_and_entropy(outputs, actions)
+        return actions, log_prob, outputs.value
+
+    def evaluate_actions(self, batch: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(log_prob (B,), entropy (B,), value (B,)) of 8-D env actions under the current policy."""
+        outputs = self.model(batch)
+        log_prob, entropy = self._log_prob_and_entropy(outputs, actions)
+        return log_prob, entropy, outputs.value
+
+    def action_distributions(self, outputs: BCRLOutputs) -> tuple[Normal, Categorical]:
+        """Gaussian over [delta_pos / scale, unit quat] with the learned log-std, categorical over the gripper."""
+        mean = torch.cat([outputs.delta_pos_scaled, self._canonical(outputs.delta_quat_xyzw)], dim=-1)
+        return Normal(mean, self.log_std.exp().expand_as(mean)), Categorical(logits=outputs.gripper_logits)
+
+    def _sample(self, outputs: BCRLOutputs) -> tuple[Tensor, Tensor]:
+        continuous, gripper = self.action_distributions(outputs)
+        return continuous.sample(), gripper.sample()
+
+    def _log_prob_and_entropy(self, outputs: BCRLOutputs, actions: Tensor) -> tuple[Tensor, Tensor]:
+        # The sample is projected (unit quaternion on the qw >= 0 cover, clamped delta_pos) before it is
+        # executed; log-probs are taken at the projected point, the same point a PPO update re-evaluates,
+        # so the probability ratio starts at exactly 1.
+        continuous_dist, gripper_dist = self.action_distributions(outputs)
+        continuous = torch.cat([actions[:, :3] / self.config.delta_pos_scale_m, actions[:, 3:7]], dim=-1)
+        gripper_class = (actions[:, 7] > 0).long()
+        log_prob = continuous_dist.log_prob(continuous).sum(-1) + gripper_dist.log_prob(gripper_class)
+        entropy = continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
+        return log_prob, entropy
+
+    # -- actions ----------------------------------------------------------------------------------------
+    @staticmethod
+    def _canonical(quat_xyzw: Tensor) -> Tensor:
+        return torch.where(quat_xyzw[..., 3:4] < 0, -quat_xyzw, quat_xyzw)
+
+    def to_env_action(self, continuous: Tensor, gripper_class: Tensor) -> Tensor:
+        """[delta_pos (m, clamped), unit quat with qw >= 0, gripper -1/+1] from model-space values."""
+        delta_pos_m = continuous[:, :3] * self.config.delta_pos_scale_m
+        norm = delta_pos_m.norm(dim=-1, keepdim=True)
+        delta_pos_m = delta_pos_m * (self.config.max_delta_pos_m / norm.clamp_min(1e-12)).clamp(max=1.0)
+        delta_quat = self._canonical(F.normalize(continuous[:, 3:7], dim=-1))
+        gripper = torch.where(gripper_class == GRIPPER_CLOSED_CLASS, GRIPPER_CLOSED, GRIPPER_OPEN)
+        return torch.cat([delta_pos_m, delta_quat, gripper[:, None].to(delta_pos_m.dtype)], dim=-1)
+
+    # -- BC loss ----------------------------------------------------------------------------------------
+    def bc_loss(self, outputs: BCRLOutputs, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        """The weighted sum of method.md section 3 and each term (unweighted) for the logs."""
+        cfg = self.config
+        action = batch[ACTION_KEY]
+        target_pos_scaled = action[:, :3] / cfg.delta_pos_scale_m
+        target_gripper_class = (action[:, 7] > 0).long()
+        terms = {
+            "l1": losses.l1_loss(outputs.delta_pos_scaled, target_pos_scaled),
+            "l2": losses.l2_loss(outputs.delta_pos_scaled, target_pos_scaled),
+            "cosine": losses.cosine_distance(outputs.delta_pos_scaled, target_pos_scaled),
+            "gripper_ce": losses.gripper_cross_entropy(
+                outputs.gripper_logits, target_gripper_class, self.gripper_class_weights
+            ),
+            "quat": losses.quaternion_distance(outputs.delta_quat_xyzw, action[:, 3:7]),
+            "quat_sign": losses.quaternion_sign_penalty(outputs.delta_quat_xyzw),
+        }
+        weights = {
+            "l1": cfg.l1_weight,
+            "l2": cfg.l2_weight,
+            "cosine": cfg.cosine_weight,
+            "gripper_ce": cfg.gripper_weight,
+            "quat": cfg.quat_weight,
+            "quat_sign": cfg.quat_sign_weight,
+        }
+        if cfg.aux_weight > 0 and (AUX_EEF_POS_KEY in batch or cfg.require_aux_targets):
+            terms.update(self._aux_terms(outputs, batch))
+            weights.update({"aux_eef_mse": cfg.aux_weight, "aux_grasp_mse": cfg.aux_weight})
+        total = sum(weights[name] * value for name, value in terms.items())
+        metrics = {f"bc_{name}": float(value.detach()) for name, value in terms.items()}
+        metrics["bc_loss"] = float(total.detach())
+        metrics["gripper_accuracy"] = float(
+            (outputs.gripper_logits.argmax(-1) == target_gripper_class).float().mean()
+        )
+        return total, metrics
+
+    def _aux_terms(self, outputs: BCRLOutputs, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        missing = [k for k in (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY) if k not in batch]
+        if missing:
+            raise KeyError(
+                f"bcrl: the batch lacks the auxiliary targets {missing}. They come from the dataset and must"
+                " survive the preprocessor (import lerobot_bcrl so processor_bcrl keeps them), or set"
+                " --policy.aux_weight=0 / --policy.require_aux_targets=false."
+            )
+        eef_target = (batch[AUX_EEF_POS_KEY] - self.aux_pos_mean) / self.aux_pos_std
+        grasp_target = (batch[AUX_GRASP_POS_KEY] - self.aux_pos_mean) / self.aux_pos_std
+        return {
+            "aux_eef_mse": losses.masked_mse(outputs.eef_pos_normalized, eef_target),
+            "aux_grasp_mse": losses.masked_mse(
+                outputs.grasp_pos_normalized, grasp_target, batch[AUX_GRASP_VALID_KEY].bool()
+            ),
+        }

@@ -1,0 +1,86 @@
+"""The auxiliary targets (`aux.*`) survive LeRobot's preprocessor and reach `BCRLPolicy.forward` unchanged.
+
+LeRobot's batch->transition converter drops unknown keys; processor_bcrl keeps `aux.*` (see its docstring).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy  # noqa: F401
+
+from lerobot_bcrl.features import AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY
+
+AUX_KEYS = (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY)
+
+
+def raw_batch(dataset, batch_size=8):
+    return next(iter(torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=True)))
+
+
+def aux_seen_by_forward(policy, batch) -> dict:
+    """Run forward and capture the aux tensors the loss received."""
+    seen = {}
+    original = policy._aux_terms
+
+    def spy(outputs, batch_in_forward):
+        seen.update({k: batch_in_forward[k].clone() for k in AUX_KEYS})
+        return original(outputs, batch_in_forward)
+
+    policy._aux_terms = spy
+    _, metrics = policy.forward(batch)
+    return seen, metrics
+
+
+def test_aux_targets_reach_forward_through_a_fresh_preprocessor(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    raw = raw_batch(dataset)
+    seen, metrics = aux_seen_by_forward(policy, preprocessor(dict(raw)))
+    for key in AUX_KEYS:
+        assert torch.equal(seen[key], raw[key]), key
+    # the grasp label is the EEF position at the first closed-gripper frame of the episode
+    assert seen[AUX_GRASP_VALID_KEY].all()
+    assert metrics["bc_aux_eef_mse"] > 0 and metrics["bc_aux_grasp_mse"] > 0
+
+
+def test_aux_targets_reach_forward_through_a_saved_and_reloaded_preprocessor(lowdim_dataset_root, tmp_path):
+    """The resume path: lerobot-train reloads the pipeline with LeRobot's own batch_to_transition."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, postprocessor = make_bcrl_policy(dataset)
+    preprocessor.save_pretrained(tmp_path)
+    postprocessor.save_pretrained(tmp_path)
+    reloaded, _ = make_pre_post_processors(policy.config, pretrained_path=str(tmp_path))
+    raw = raw_batch(dataset)
+    seen, _ = aux_seen_by_forward(policy, reloaded(dict(raw)))
+    for key in AUX_KEYS:
+        assert torch.equal(seen[key], raw[key]), key
+
+
+def test_aux_loss_uses_the_targets_and_masks_invalid_grasps(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    batch = preprocessor(raw_batch(dataset))
+    outputs = policy.model(batch)
+    eef_target = (batch[AUX_EEF_POS_KEY] - policy.aux_pos_mean) / policy.aux_pos_std
+    expected_eef = (outputs.eef_pos_normalized - eef_target).pow(2).mean()
+    _, metrics = policy.forward(batch)
+    assert metrics["bc_aux_eef_mse"] == pytest.approx(expected_eef.item(), rel=1e-5)
+    # a batch whose grasps are all invalid contributes no grasp loss, however wrong the targets
+    batch[AUX_GRASP_VALID_KEY] = torch.zeros_like(batch[AUX_GRASP_VALID_KEY])
+    batch[AUX_GRASP_POS_KEY] = batch[AUX_GRASP_POS_KEY] + 100.0
+    _, metrics = policy.forward(batch)
+    assert metrics["bc_aux_grasp_mse"] == 0.0
+
+
+def test_missing_aux_targets_fail_loudly(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    batch = {k: v for k, v in preprocessor(raw_batch(dataset)).items() if not k.startswith("aux.")}
+    with pytest.raises(KeyError, match="auxiliary targets"):
+        policy.forward(batch)
+    policy.config.require_aux_targets = False
+    _, metrics = policy.forward(batch)
+    assert "bc_aux_eef_mse" not in metrics

@@ -1,0 +1,105 @@
+"""The `bcrl` policy on tiny recorded datasets: action format, PPO interface, save/load, overfitting."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from policy_fixtures import (  # noqa: F401  (fixtures)
+    image_dataset_root,
+    load_dataset,
+    lowdim_dataset_root,
+    make_bcrl_policy,
+    whole_dataset_batch,
+)
+
+from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy
+
+
+def assert_valid_actions(actions: torch.Tensor):
+    assert actions.shape[-1] == 8
+    assert torch.allclose(actions[:, 3:7].norm(dim=-1), torch.ones(len(actions)), atol=1e-5)
+    assert (actions[:, 6] >= 0).all()
+    assert set(actions[:, 7].tolist()) <= {-1.0, 1.0}
+    assert (actions[:, :3].norm(dim=-1) <= 0.05 + 1e-6).all()
+
+
+@pytest.mark.parametrize("fixture_name", ["lowdim_dataset_root", "image_dataset_root"])
+def test_select_action_is_a_valid_deterministic_action(fixture_name, request):
+    dataset = load_dataset(request.getfixturevalue(fixture_name))
+    policy, preprocessor, postprocessor = make_bcrl_policy(dataset)
+    assert policy.config.uses_images == (fixture_name == "image_dataset_root")
+    batch = preprocessor(whole_dataset_batch(dataset))
+    actions = postprocessor(policy.select_action(batch))
+    assert actions.shape == (len(dataset), 8)
+    assert_valid_actions(actions)
+    assert torch.equal(actions, postprocessor(policy.select_action(batch)))
+    torch.manual_seed(0)
+    sampled = postprocessor(policy.select_action(batch, sample=True))
+    assert_valid_actions(sampled)
+    assert not torch.allclose(sampled[:, :3], actions[:, :3])
+
+
+def test_ppo_interface_log_prob_matches_between_sample_and_evaluate(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    batch = preprocessor(whole_dataset_batch(dataset))
+    actions, log_prob, value = policy.sample_actions(batch)
+    assert_valid_actions(actions)
+    new_log_prob, entropy, new_value = policy.evaluate_actions(batch, actions)
+    assert log_prob.shape == entropy.shape == value.shape == (len(dataset),)
+    assert torch.allclose(log_prob, new_log_prob)
+    assert torch.allclose(value, new_value)
+    # gradients reach the learned log-std and the value head
+    (-(new_log_prob.mean()) - entropy.mean() + new_value.pow(2).mean()).backward()
+    assert policy.log_std.grad is not None and policy.model.value_head.weight.grad is not None
+
+
+def test_gripper_class_weights_come_from_the_dataset_stats(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, _, _ = make_bcrl_policy(dataset)
+    actions = torch.stack([dataset[i]["action"] for i in range(len(dataset))])
+    closed_fraction = (actions[:, 7] > 0).float().mean().item()
+    weights = policy.gripper_class_weights
+    assert weights.tolist() == pytest.approx([0.5 / (1 - closed_fraction), 0.5 / closed_fraction], rel=1e-4)
+
+
+@pytest.mark.parametrize("fixture_name", ["lowdim_dataset_root", "image_dataset_root"])
+def test_save_load_round_trip_gives_identical_actions(fixture_name, request, tmp_path):
+    from lerobot.policies.factory import make_pre_post_processors
+
+    dataset = load_dataset(request.getfixturevalue(fixture_name))
+    policy, preprocessor, postprocessor = make_bcrl_policy(dataset)
+    # move the buffers and log-std away from their defaults so that a missed load would show
+    policy.log_std.data.fill_(-2.5)
+    policy.save_pretrained(tmp_path)
+    preprocessor.save_pretrained(tmp_path)
+    postprocessor.save_pretrained(tmp_path)
+    assert {"config.json", "model.safetensors", "policy_preprocessor.json"} <= {p.name for p in tmp_path.iterdir()}
+
+    loaded = BCRLPolicy.from_pretrained(tmp_path)
+    loaded_pre, loaded_post = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
+    raw = whole_dataset_batch(dataset)
+    expected = postprocessor(policy.select_action(preprocessor(dict(raw))))
+    actual = loaded_post(loaded.select_action(loaded_pre(dict(raw))))
+    assert torch.equal(expected, actual)
+    for name in ("gripper_class_weights", "aux_pos_mean", "aux_pos_std", "log_std"):
+        assert torch.equal(getattr(policy, name), getattr(loaded, name)), name
+
+
+def test_overfits_a_tiny_lowdim_dataset(lowdim_dataset_root):
+    torch.manual_seed(0)
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    batch = preprocessor(whole_dataset_batch(dataset))
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=2e-3)
+    policy.train()
+    first_loss = None
+    for _ in range(400):
+        loss, metrics = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        first_loss = first_loss or loss.item()
+    final_loss, metrics = policy.forward(batch)
+    assert final_loss.item() <= first_loss / 10, (first_loss, metrics)
+    assert metrics["gripper_accuracy"] == 1.0
