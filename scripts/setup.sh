@@ -21,20 +21,34 @@ find_python312() {
   return 1
 }
 
-install_system_libs() {
-  # EGL (Mesa) for MuJoCo offscreen rendering; FFmpeg libraries for torchcodec's video decoding.
-  local need=()
-  for pkg in libegl1 libegl-mesa0 libgl1 libgles2 libavcodec59 libavformat59 libavutil57 libswscale6 libavdevice59 libavfilter8; do
-    dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
-  done
-  [ ${#need[@]} -eq 0 ] && return 0
-  if ! command -v apt-get >/dev/null 2>&1; then
-    echo "setup: missing system libraries (${need[*]}) and no apt-get to install them" >&2; return 1
-  fi
+apt_install() {
   local sudo=""; [ "$(id -u)" -ne 0 ] && sudo="sudo"
-  echo "setup: installing ${need[*]}"
-  $sudo apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+  echo "setup: installing $*"
+  $sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "$@" >/dev/null
+}
+
+missing_debs() {
+  for pkg in "$@"; do dpkg -s "$pkg" >/dev/null 2>&1 || echo "$pkg"; done
+}
+
+install_system_libs() {
+  command -v dpkg >/dev/null 2>&1 || { echo "setup: not a Debian-like system; make sure libEGL (Mesa) and FFmpeg's libraries are installed"; return 0; }
+  # EGL through Mesa: MuJoCo's headless rendering (MUJOCO_GL=egl) on a machine without a GPU.
+  local egl; egl=$(missing_debs libegl1 libegl-mesa0 libgl1 libgles2)
+  if [ -n "$egl" ]; then
+    apt_install $egl || { echo "setup: could not install $egl (needed for rendering)" >&2; return 1; }
+  fi
+  # FFmpeg's shared libraries: torchcodec (LeRobot's default video decoder) loads them at run time.
+  # Their package names carry the ABI version (libavcodec59 on Debian 12), so ask apt for them.
+  local ffmpeg=()
+  for lib in libavcodec libavformat libavutil libswscale libswresample libavdevice libavfilter; do
+    local name; name=$(apt-cache pkgnames "$lib" 2>/dev/null | grep -E "^${lib}[0-9]+$" | sort -V | tail -1)
+    [ -n "$name" ] && ffmpeg+=("$name")
+  done
+  local need; need=$(missing_debs "${ffmpeg[@]}")
+  if [ -n "$need" ]; then
+    apt_install $need || echo "setup: WARNING: FFmpeg libraries not installed; decode videos with --dataset.video_backend=pyav" >&2
+  fi
 }
 
 PY=$(find_python312) || {
