@@ -1,0 +1,85 @@
+"""BC training throughput of the `bcrl` policy on CPU: data pipeline + step vs the model step alone.
+
+Prints one JSON line. Example: python bench/bc_throughput.py --root=/tmp/dev_img --batch_size=64 --steps=5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--root", required=True, help="a bcrl-record dataset")
+    parser.add_argument("--batch_size", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--latency_calls", type=int, default=50)
+    args = parser.parse_args()
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+
+    dataset = LeRobotDataset("local/bench", root=args.root)
+    cfg = BCRLConfig(device="cpu", push_to_hub=False)
+    policy = make_policy(cfg, ds_meta=dataset.meta)
+    preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
+    optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
+    loader = torch.utils.data.DataLoader(dataset, batch_size=args.batch_size, shuffle=True, drop_last=True)
+
+    def train_step(batch):
+        loss, _ = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    policy.train()
+    batches = []
+    start = time.perf_counter()
+    iterator = iter(loader)
+    for _ in range(args.steps):
+        try:
+            raw = next(iterator)
+        except StopIteration:
+            iterator = iter(loader)
+            raw = next(iterator)
+        batch = preprocessor(raw)
+        train_step(batch)
+        batches.append(batch)
+    pipeline_s = time.perf_counter() - start
+
+    start = time.perf_counter()
+    for batch in batches:
+        train_step(batch)
+    model_s = time.perf_counter() - start
+
+    single = {k: v[:1] if isinstance(v, torch.Tensor) else v for k, v in batches[0].items()}
+    latencies = []
+    for _ in range(args.latency_calls):
+        start = time.perf_counter()
+        policy.select_action(single)
+        latencies.append(time.perf_counter() - start)
+
+    samples = args.steps * args.batch_size
+    print(
+        json.dumps(
+            {
+                "mode": "pixels" if cfg.uses_images else "low_dim",
+                "batch_size": args.batch_size,
+                "torch_threads": torch.get_num_threads(),
+                "pipeline_samples_per_s": samples / pipeline_s,
+                "model_step_samples_per_s": samples / model_s,
+                "select_action_p50_ms_batch1": 1000 * float(np.median(latencies)),
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
