@@ -153,3 +153,20 @@ def test_lerobot_env_config_builds_vector_env():
         obs, reward, terminated, truncated, info = vec.step(np.tile(NO_OP, (2, 1)))
     assert truncated.all() and "is_success" in info
     vec.close()
+
+
+@pytest.mark.slow
+def test_async_vector_env_in_forkserver_workers():
+    """lerobot-eval's default on many-core machines: AsyncVectorEnv with forkserver workers."""
+    from lerobot.envs.factory import make_env_config
+
+    import lerobot_bcrl  # noqa: F401
+
+    cfg = make_env_config("bcrl_lift", obs_type="agent_pos", episode_length=3)
+    vec = cfg.create_envs(n_envs=2, use_async_envs=True)["bcrl_lift"][0]
+    assert isinstance(vec, gym.vector.AsyncVectorEnv)
+    obs, _ = vec.reset(seed=[0, 0])
+    np.testing.assert_array_equal(obs["environment_state"][0], obs["environment_state"][1])
+    obs, reward, terminated, truncated, info = vec.step(np.tile(NO_OP, (2, 1)))
+    assert obs["agent_pos"].shape == (2, STATE_DIM) and reward.shape == (2,)
+    vec.close()
