@@ -154,3 +154,36 @@ def apply_delta_action(pos_m: np.ndarray, quat_xyzw: np.ndarray, action: np.ndar
     next_pos_m = np.asarray(pos_m, dtype=np.float64) + action[:3]
     next_quat_xyzw = quat_normalize(quat_multiply(quat_normalize(action[3:7]), quat_normalize(quat_xyzw)))
     return next_pos_m, next_quat_xyzw
+
+
+def quat_rotate(quat_xyzw: np.ndarray, vec: np.ndarray) -> np.ndarray:
+    """Rotate 3-vectors by unit quaternions (batched over leading dimensions)."""
+    quat_xyzw = quat_normalize(quat_xyzw)
+    vec = np.asarray(vec, dtype=np.float64)
+    xyz, w = quat_xyzw[..., :3], quat_xyzw[..., 3:4]
+    # v' = v + 2 w (u x v) + 2 u x (u x v), without building the matrix
+    uv = np.cross(xyz, vec)
+    return vec + 2.0 * w * uv + 2.0 * np.cross(xyz, uv)
+
+
+def pose_compose(
+    pos_a_m: np.ndarray, quat_a_xyzw: np.ndarray, pos_b_m: np.ndarray, quat_b_xyzw: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """T_a * T_b: pose b (given in frame a) expressed in a's parent frame."""
+    pos_m = np.asarray(pos_a_m, dtype=np.float64) + quat_rotate(quat_a_xyzw, pos_b_m)
+    return pos_m, quat_normalize(quat_multiply(quat_a_xyzw, quat_b_xyzw))
+
+
+def pose_inverse(pos_m: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T^-1 of a rigid transform given as (position, quaternion)."""
+    quat_inv_xyzw = quat_conjugate(quat_normalize(quat_xyzw))
+    return -quat_rotate(quat_inv_xyzw, pos_m), quat_inv_xyzw
+
+
+def quat_continuous(quat_xyzw: np.ndarray) -> np.ndarray:
+    """A (T, 4) sequence with each quaternion on the cover nearest its predecessor (no sign jumps)."""
+    quats = quat_normalize(quat_xyzw).copy()
+    for t in range(1, len(quats)):
+        if np.dot(quats[t], quats[t - 1]) < 0:
+            quats[t] = -quats[t]
+    return quats

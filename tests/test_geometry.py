@@ -98,3 +98,29 @@ def test_controller_conversion_round_trip_and_clamp():
     np.testing.assert_allclose(ctrl[:6], 0.0)
     with pytest.raises(ValueError, match="non-finite"):
         controller.delta_action_to_controller(np.full(8, np.nan))
+
+
+def test_quat_rotate_and_pose_compose_inverse_round_trip():
+    # 90 degrees about z takes x to y
+    q_z90 = G.rotvec_to_quat(np.array([0.0, 0.0, math.pi / 2]))
+    np.testing.assert_allclose(G.quat_rotate(q_z90, [1.0, 0.0, 0.0]), [0.0, 1.0, 0.0], atol=1e-12)
+    rng = np.random.default_rng(5)
+    q = random_quats(20, seed=6)
+    p = rng.normal(size=(20, 3))
+    v = rng.normal(size=(20, 3))
+    # rotating preserves length and matches two successive rotations
+    np.testing.assert_allclose(np.linalg.norm(G.quat_rotate(q, v), axis=1), np.linalg.norm(v, axis=1))
+    np.testing.assert_allclose(
+        G.quat_rotate(G.quat_multiply(q, q[::-1]), v), G.quat_rotate(q, G.quat_rotate(q[::-1], v)), atol=1e-12
+    )
+    inv_p, inv_q = G.pose_inverse(p, q)
+    ident_p, ident_q = G.pose_compose(p, q, inv_p, inv_q)
+    np.testing.assert_allclose(ident_p, 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(ident_q[:, 3]), 1.0, atol=1e-12)
+
+
+def test_quat_continuous_removes_sign_jumps():
+    angles = np.linspace(0, 1.0, 10)
+    quats = G.rotvec_to_quat(np.stack([np.zeros(10), np.zeros(10), angles], axis=1))
+    flipped = quats * np.where(np.arange(10) % 3 == 1, -1.0, 1.0)[:, None]
+    np.testing.assert_allclose(G.quat_continuous(flipped), quats, atol=1e-12)
