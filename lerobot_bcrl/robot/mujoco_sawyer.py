@@ -31,6 +31,7 @@ class MujocoSawyer:
 
     def __init__(self, model: mujoco.MjModel):
         self.model = model
+        self.arm_joint_ids = np.array([model.joint(ROBOT_PREFIX + n).id for n in SAWYER_ARM_JOINTS])
         self.arm_qpos_adr = np.array([model.joint(ROBOT_PREFIX + n).qposadr[0] for n in SAWYER_ARM_JOINTS])
         self.arm_dof_adr = np.array([model.joint(ROBOT_PREFIX + n).dofadr[0] for n in SAWYER_ARM_JOINTS])
         self.finger_qpos_adr = np.array([model.joint(n).qposadr[0] for n in FINGER_JOINTS])
