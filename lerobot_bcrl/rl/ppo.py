@@ -1,0 +1,566 @@
+"""BC+RL: PPO fine-tuning of a `bcrl` policy with a decaying BC term, `L = theta_t * L_BC + (1 - theta_t) * L_PPO`.
+
+One module, CleanRL-style: collect a rollout, GAE, epochs over minibatches (each with a demo minibatch for
+the BC term), log, evaluate, checkpoint in LeRobot's layout. The CLI is `bcrl-finetune`.
+"""
+
+
+import csv
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from functools import partial
+from pathlib import Path
+
+import draccus
+import numpy as np
+import torch
+from lerobot.configs import parser
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.envs.configs import EnvConfig
+from torch import Tensor
+from tqdm import tqdm
+
+from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
+from lerobot_bcrl.rl.agent import Agent, BCRLAgent
+from lerobot_bcrl.rl.rollout import EpisodeStats, RolloutWorkers, Trajectories, make_gym_env, make_workers
+from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
+
+EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes use seeds no dataset or training rollout draws
+FINETUNE_CONFIG_NAME = "finetune_config.json"
+ROLLOUT_POLICY_DIR = "rollout_policy"  # what the workers load once (config, processors); weights come per rollout
+
+
+# ------------------------------------------------------------------------------------------------ config
+@dataclass
+class DemoDatasetConfig:
+    repo_id: str = "local/lift"  # the demonstrations of the BC term (and the feature shapes/stats from scratch)
+    root: str | None = None
+    episodes: list[int] | None = None  # None: all episodes
+    video_backend: str | None = None
+
+
+@dataclass
+class PPOConfig:
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2  # clipped surrogate's epsilon
+    c1: float = 1.0  # weight of the clipped surrogate in L_PPO (method.md section 4)
+    c2: float = 0.5  # weight of the value loss in L_PPO
+    entropy_coef: float = 0.0
+    update_epochs: int = 4
+    minibatch_size: int = 256
+    learning_rate: float = 1e-4
+    max_grad_norm: float = 0.5
+    normalize_advantages: bool = True
+    # Rewards divided by a running std of the discounted return (CleanRL's NormalizeReward). Observations
+    # are always normalised by the policy's preprocessor with the dataset stats saved beside the weights.
+    normalize_rewards: bool = True
+    target_kl: float | None = None  # stop an iteration's epochs early when approx_kl exceeds it
+    reset_log_std: float | None = -2.0  # set the policy's learned log-std at the start (BC never trains it)
+
+
+@dataclass
+class RolloutConfig:
+    n_workers: int = 2  # subprocesses; 0 runs the envs in this process
+    envs_per_worker: int = 2
+    steps_per_env: int = 128  # rollout length per env per iteration
+
+
+@dataclass
+class FinetuneConfig:
+    dataset: DemoDatasetConfig = field(default_factory=DemoDatasetConfig)
+    env: EnvConfig = field(default_factory=lambda: LiftEnvConfig(obs_type="agent_pos"))
+    # `--policy.path=<BC pretrained_model>` fine-tunes a checkpoint; `--policy.type=bcrl` starts from scratch.
+    policy: PreTrainedConfig | None = None
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    rollout: RolloutConfig = field(default_factory=RolloutConfig)
+    total_env_steps: int = 300_000  # 0: no training, only the final evaluation (the "BC only" baseline)
+    bc_batch_size: int = 256  # demo minibatch size for the BC term
+    output_dir: Path | None = None
+    resume: bool = False
+    seed: int = 1000
+    label: str | None = None  # method name in the report; default: BC / BC+RL / PPO from scratch
+    eval_freq: int = 50_000  # env steps between evaluations (0: only at the end)
+    eval_episodes: int = 10
+    final_eval_episodes: int = 50
+    save_freq: int = 50_000  # env steps between checkpoints (and one at the end)
+    tensorboard: bool = True  # also log to <output_dir>/tensorboard if tensorboard is installed
+    wandb: bool = False
+
+    def __post_init__(self):
+        policy_path = parser.get_path_arg("policy")
+        if policy_path:  # like lerobot-train: the checkpoint's config, with --policy.* overrides on top
+            self.policy = PreTrainedConfig.from_pretrained(policy_path, cli_overrides=parser.get_cli_overrides("policy"))
+            self.policy.pretrained_path = Path(policy_path)
+        if self.output_dir is None:
+            self.output_dir = Path("outputs/finetune") / time.strftime("%Y-%m-%d_%H-%M-%S")
+        self.output_dir = Path(self.output_dir)
+
+    @classmethod
+    def __get_path_fields__(cls) -> list[str]:
+        return ["policy"]
+
+    @property
+    def method(self) -> str:
+        if self.label:
+            return self.label
+        if self.total_env_steps == 0:
+            return "BC"
+        return "BC+RL" if self.policy.pretrained_path else "PPO from scratch"
+
+
+# --------------------------------------------------------------------------------------- maths of PPO
+def compute_gae(rewards: Tensor, values: Tensor, dones: Tensor, last_values: Tensor, gamma: float,
+                gae_lambda: float) -> tuple[Tensor, Tensor]:
+    """Advantages and returns (T, N) by generalised advantage estimation; `dones[t]` ends the episode after t."""
+    advantages = torch.zeros_like(rewards)
+    next_advantage = torch.zeros_like(last_values)
+    next_values = last_values
+    for t in reversed(range(rewards.shape[0])):
+        not_done = 1.0 - dones[t]
+        delta = rewards[t] + gamma * next_values * not_done - values[t]
+        next_advantage = delta + gamma * gae_lambda * not_done * next_advantage
+        advantages[t] = next_advantage
+        next_values = values[t]
+    return advantages, advantages + values
+
+
+def ppo_loss_terms(new_log_prob: Tensor, old_log_prob: Tensor, advantages: Tensor, new_value: Tensor,
+                   returns: Tensor, clip_eps: float) -> dict[str, Tensor]:
+    """Clipped surrogate (as a loss), value MSE, and the diagnostics CleanRL logs."""
+    log_ratio = new_log_prob - old_log_prob
+    ratio = log_ratio.exp()
+    surrogate = advantages * ratio
+    clipped_surrogate = advantages * ratio.clamp(1 - clip_eps, 1 + clip_eps)
+    with torch.no_grad():
+        approx_kl = ((ratio - 1) - log_ratio).mean()  # the low-variance estimator (Schulman's k3)
+        clipfrac = ((ratio - 1).abs() > clip_eps).float().mean()
+    return {
+        "policy_loss": -torch.min(surrogate, clipped_surrogate).mean(),
+        "value_loss": 0.5 * (new_value - returns).pow(2).mean(),
+        "approx_kl": approx_kl,
+        "clipfrac": clipfrac,
+    }
+
+
+def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
+    target_var = np.var(target)
+    return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
+
+
+class RewardScaler:
+    """Divides rewards by the running std of each env's discounted return (state saved with checkpoints)."""
+
+    def __init__(self, gamma: float, n_envs: int):
+        self.gamma = gamma
+        self.discounted_return = np.zeros(n_envs)
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+
+    def __call__(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        for t in range(rewards.shape[0]):
+            self.discounted_return = self.discounted_return * self.gamma + rewards[t]
+            self._update(self.discounted_return)
+            self.discounted_return = self.discounted_return * (1 - dones[t])
+        return (rewards / math.sqrt(self.var + 1e-8)).astype(np.float32)
+
+    def _update(self, batch: np.ndarray) -> None:  # Chan et al.'s parallel mean/variance update
+        batch_mean, batch_var, batch_count = batch.mean(), batch.var(), batch.size
+        delta, total = batch_mean - self.mean, self.count + batch_count
+        self.mean += delta * batch_count / total
+        self.var = (self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total
+        self.count = total
+
+    def state_dict(self) -> dict:
+        return {"discounted_return": self.discounted_return.tolist(), "count": self.count, "mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.discounted_return = np.asarray(state["discounted_return"])
+        self.count, self.mean, self.var = state["count"], state["mean"], state["var"]
+
+
+def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
+              bc_forward=None) -> tuple[Tensor, dict[str, float]]:
+    """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch."""
+    new_log_prob, entropy, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
+    advantages = minibatch["advantages"]
+    if cfg.normalize_advantages and advantages.numel() > 1:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    ppo = ppo_loss_terms(new_log_prob, minibatch["log_probs"], advantages, new_value, minibatch["returns"], cfg.clip_eps)
+    ppo_loss = cfg.c1 * ppo["policy_loss"] + cfg.c2 * ppo["value_loss"] - cfg.entropy_coef * entropy.mean()
+    # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
+    bc_loss, bc_metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
+
+    loss = theta * bc_loss + (1 - theta) * ppo_loss
+
+    metrics = {name: float(value.detach()) for name, value in ppo.items()}
+    metrics.update(bc_metrics, entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()),
+                   loss=float(loss.detach()))
+    return loss, metrics
+
+
+# ----------------------------------------------------------------------------------- the update loop
+def flatten_time_and_envs(trajectories: Trajectories, advantages: Tensor, returns: Tensor) -> dict:
+    flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731  (T, N, ...) -> (T*N, ...)
+    return {
+        "obs": {key: flat(value) for key, value in trajectories.observations.items()},
+        "actions": flat(torch.as_tensor(trajectories.actions)),
+        "log_probs": flat(torch.as_tensor(trajectories.log_probs)),
+        "values": flat(torch.as_tensor(trajectories.values)),
+        "advantages": flat(advantages),
+        "returns": flat(returns),
+    }
+
+
+def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Trajectories, rewards: np.ndarray,
+               cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
+               demo_batches=None, bc_forward=None) -> dict[str, float]:
+    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics."""
+    values = torch.as_tensor(trajectories.values)
+    bootstrapped_rewards = torch.as_tensor(rewards) + cfg.gamma * torch.as_tensor(trajectories.truncation_values)
+    advantages, returns = compute_gae(bootstrapped_rewards, values, torch.as_tensor(trajectories.dones),
+                                      torch.as_tensor(trajectories.last_values), cfg.gamma, cfg.gae_lambda)
+    batch = flatten_time_and_envs(trajectories, advantages, returns)
+    batch_size = batch["actions"].shape[0]
+
+    agent.module.train()
+    history: dict[str, list[float]] = {}
+    for _epoch in range(cfg.update_epochs):
+        permutation = torch.randperm(batch_size)
+        for start in range(0, batch_size, cfg.minibatch_size):
+            index = permutation[start : start + cfg.minibatch_size]
+            minibatch = {key: value[index] for key, value in batch.items() if key != "obs"}
+            minibatch["obs"] = agent.observation_batch({k: v[index.numpy()] for k, v in batch["obs"].items()})
+            theta = schedule_state.theta(schedule_cfg)
+            demo_batch = next(demo_batches) if (theta > 0 and demo_batches is not None) else None
+
+            loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward)
+
+            optimizer.zero_grad()
+            loss.backward()
+            metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(agent.module.parameters(), cfg.max_grad_norm))
+            optimizer.step()
+            schedule_state.optim_step += 1
+            metrics["theta"] = theta
+            for name, value in metrics.items():
+                history.setdefault(name, []).append(value)
+        if cfg.target_kl is not None and np.mean(history["approx_kl"][-(batch_size // cfg.minibatch_size):]) > cfg.target_kl:
+            break
+    schedule_state.ppo_iteration += 1
+    summary = {name: float(np.mean(values_)) for name, values_ in history.items()}
+    summary["explained_variance"] = explained_variance(batch["values"].numpy(), batch["returns"].numpy())
+    return summary
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+def checkpoint_name(env_steps: int) -> str:
+    return f"{env_steps:09d}"
+
+
+def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postprocessor, optimizer,
+                    schedule_state: ScheduleState, reward_scaler: RewardScaler | None) -> Path:
+    """LeRobot's layout (`checkpoints/<step>/{pretrained_model,training_state}`, `last` symlink), atomically."""
+    from lerobot.optim.optimizers import save_optimizer_state
+    from lerobot.utils.random_utils import save_rng_state
+
+    checkpoints_dir = cfg.output_dir / "checkpoints"
+    final_dir = checkpoints_dir / checkpoint_name(env_steps)
+    tmp_dir = checkpoints_dir / f".tmp_{checkpoint_name(env_steps)}"
+    shutil.rmtree(tmp_dir, ignore_errors=True)
+    pretrained_dir, state_dir = tmp_dir / "pretrained_model", tmp_dir / "training_state"
+    agent.policy.save_pretrained(pretrained_dir)
+    agent.preprocessor.save_pretrained(pretrained_dir)
+    postprocessor.save_pretrained(pretrained_dir)
+    with open(pretrained_dir / FINETUNE_CONFIG_NAME, "w") as f, draccus.config_type("json"):
+        draccus.dump(cfg, f, indent=2)
+    state_dir.mkdir(parents=True)
+    save_optimizer_state(optimizer, state_dir)
+    save_rng_state(state_dir)
+    training_step = {"env_steps": env_steps, **asdict(schedule_state), "theta": schedule_state.theta(cfg.schedule),
+                     "reward_scaler": reward_scaler.state_dict() if reward_scaler else None}
+    (state_dir / "training_step.json").write_text(json.dumps(training_step, indent=2))
+    if final_dir.exists():
+        shutil.rmtree(final_dir)
+    os.replace(tmp_dir, final_dir)
+    last_tmp = checkpoints_dir / ".last_tmp"
+    last_tmp.unlink(missing_ok=True)
+    last_tmp.symlink_to(final_dir.name)
+    os.replace(last_tmp, checkpoints_dir / "last")
+    return final_dir
+
+
+def load_training_state(checkpoint_dir: Path, optimizer) -> dict:
+    from lerobot.optim.optimizers import load_optimizer_state
+    from lerobot.utils.random_utils import load_rng_state
+
+    state_dir = checkpoint_dir / "training_state"
+    load_optimizer_state(optimizer, state_dir)
+    load_rng_state(state_dir)
+    return json.loads((state_dir / "training_step.json").read_text())
+
+
+# ------------------------------------------------------------------------------------------ logging
+LOG_COLUMNS = [
+    "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "collect_s", "learn_s",
+    "train_return", "train_success", "train_episodes",
+    "loss", "ppo_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
+    "grad_norm", "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
+    "bc_aux_eef_mse", "bc_aux_grasp_mse", "gripper_accuracy",
+    "eval_return", "eval_return_ci95", "eval_success", "eval_steps_to_lift", "eval_episodes",
+]
+
+
+class RunLogger:
+    """CSV (always), TensorBoard (if installed and asked), wandb (only when asked)."""
+
+    def __init__(self, cfg: FinetuneConfig, resume_env_steps: int | None):
+        self.csv_path = cfg.output_dir / "logs.csv"
+        if resume_env_steps is not None and self.csv_path.exists():  # drop rows the killed run logged after its checkpoint
+            rows = [r for r in csv.DictReader(self.csv_path.open()) if int(r["env_steps"]) <= resume_env_steps]
+            self._write_rows(rows)
+        elif not self.csv_path.exists() or resume_env_steps is None:
+            self._write_rows([])
+        self.tensorboard = self.wandb = None
+        if cfg.tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.tensorboard = SummaryWriter(str(cfg.output_dir / "tensorboard"))
+            except ImportError:
+                pass
+        if cfg.wandb:
+            import wandb
+
+            self.wandb = wandb.init(project="lerobot-bcrl", name=cfg.output_dir.name, config=draccus.encode(cfg))
+
+    def _write_rows(self, rows: list[dict]) -> None:
+        with self.csv_path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def log(self, row: dict) -> None:
+        with self.csv_path.open("a", newline="") as f:
+            csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore").writerow(row)
+        numeric = {k: v for k, v in row.items() if isinstance(v, (int, float)) and k != "env_steps"}
+        if self.tensorboard:
+            for name, value in numeric.items():
+                self.tensorboard.add_scalar(name, value, row["env_steps"])
+        if self.wandb:
+            self.wandb.log(numeric, step=row["env_steps"])
+
+    def close(self) -> None:
+        if self.tensorboard:
+            self.tensorboard.close()
+        if self.wandb:
+            self.wandb.finish()
+
+
+def summarize_episodes(episodes: list[EpisodeStats], prefix: str) -> dict[str, float]:
+    if not episodes:
+        return {}
+    returns = np.array([e.episode_return for e in episodes])
+    lifts = [e.steps_to_lift for e in episodes if e.steps_to_lift is not None]
+    ci95 = 1.96 * returns.std(ddof=1) / math.sqrt(len(returns)) if len(returns) > 1 else float("nan")
+    return {
+        f"{prefix}_return": float(returns.mean()),
+        f"{prefix}_return_ci95": float(ci95),
+        f"{prefix}_success": float(np.mean([e.success for e in episodes])),
+        f"{prefix}_steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"),
+        f"{prefix}_episodes": len(episodes),
+    }
+
+
+# ------------------------------------------------------------------------------------------- set-up
+class DemoBuffer:
+    """The demonstrations in memory (read once; cameras kept as uint8), sampled as endless shuffled minibatches.
+
+    LeRobotDataset decodes one frame per `__getitem__`; a BC minibatch beside every PPO minibatch would spend
+    most of the update there. Batches are preprocessed like lerobot-train's (normalised, aux.* kept).
+    """
+
+    def __init__(self, dataset, batch_size: int, seed: int, preprocessor):
+        loader = torch.utils.data.DataLoader(dataset, batch_size=256, shuffle=False, num_workers=0)
+        chunks = list(tqdm(loader, desc="loading demonstrations", leave=False))
+        self.frames = {key: self._compact(key, torch.cat([c[key] for c in chunks]))
+                       for key, value in chunks[0].items() if isinstance(value, Tensor)}
+        self.n_frames = len(next(iter(self.frames.values())))
+        self.batch_size = min(batch_size, self.n_frames)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.preprocessor = preprocessor
+
+    @staticmethod
+    def _compact(key: str, value: Tensor) -> Tensor:
+        return (value * 255).round().to(torch.uint8) if key.startswith("observation.images.") else value
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> dict[str, Tensor]:
+        index = torch.randint(self.n_frames, (self.batch_size,), generator=self.generator)
+        batch = {key: value[index] for key, value in self.frames.items()}
+        batch.update({key: value.float() / 255 for key, value in batch.items() if value.dtype == torch.uint8})
+        return self.preprocessor(batch)
+
+
+def build_policy(cfg: FinetuneConfig, dataset):
+    """The policy and processors the way lerobot-train builds them (from a checkpoint or from scratch)."""
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    cfg.policy.device = "cpu"
+    policy = make_policy(cfg.policy, ds_meta=dataset.meta)
+    pretrained = str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None
+    processor_kwargs = {"dataset_stats": dataset.meta.stats} if pretrained is None else {
+        "preprocessor_overrides": {"device_processor": {"device": "cpu"}}}
+    preprocessor, postprocessor = make_pre_post_processors(cfg.policy, pretrained_path=pretrained, **processor_kwargs)
+    return policy, preprocessor, postprocessor
+
+
+def env_gym_kwargs(cfg: FinetuneConfig, uses_images: bool) -> dict:
+    kwargs = dict(cfg.env.gym_kwargs)
+    if not uses_images:
+        kwargs["obs_type"] = "agent_pos"  # a low-dim policy never needs the camera (3x faster)
+    return kwargs
+
+
+def worker_kwargs(cfg: FinetuneConfig, policy_dir: Path, gym_kwargs: dict, seed: int) -> list[dict]:
+    n = max(cfg.rollout.n_workers, 1)
+    return [
+        {
+            "make_env": partial(make_gym_env, cfg.env.gym_id, gym_kwargs),
+            "make_agent": partial(BCRLAgent.from_pretrained, policy_dir),
+            "n_envs": cfg.rollout.envs_per_worker,
+            "seed": seed + 7919 * i,
+        }
+        for i in range(n)
+    ]
+
+
+# --------------------------------------------------------------------------------------------- main
+def finetune(cfg: FinetuneConfig) -> dict:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.utils.random_utils import set_seed
+
+    if cfg.policy is None:
+        raise ValueError("give --policy.path=<BC pretrained_model> or --policy.type=bcrl (PPO from scratch)")
+    last_checkpoint = cfg.output_dir / "checkpoints" / "last"
+    if cfg.schedule.type == "auto":  # BC+RL decays theta_t from 1; from scratch there is no BC term at all
+        from_checkpoint = cfg.policy.pretrained_path is not None
+        cfg.schedule.type = "three_phase" if from_checkpoint else "constant"
+        cfg.schedule.constant_theta = cfg.schedule.constant_theta if from_checkpoint else 0.0
+    if cfg.resume:
+        if not last_checkpoint.exists():
+            raise FileNotFoundError(f"--resume=true but there is no checkpoint at {last_checkpoint}")
+        initial_policy_path = cfg.policy.pretrained_path
+        cfg.policy.pretrained_path = last_checkpoint.resolve() / "pretrained_model"
+    elif (cfg.output_dir / "checkpoints").exists():
+        raise FileExistsError(f"{cfg.output_dir} already holds checkpoints: pass --resume=true or another --output_dir")
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    set_seed(cfg.seed)
+    torch.set_num_threads(1)
+
+    dataset = LeRobotDataset(cfg.dataset.repo_id, root=cfg.dataset.root, episodes=cfg.dataset.episodes,
+                             video_backend=cfg.dataset.video_backend)
+    policy, preprocessor, postprocessor = build_policy(cfg, dataset)
+    agent = BCRLAgent(policy, preprocessor)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.ppo.learning_rate, eps=1e-5)
+    schedule_state, env_steps = ScheduleState(), 0
+    n_envs = max(cfg.rollout.n_workers, 1) * cfg.rollout.envs_per_worker
+    reward_scaler = RewardScaler(cfg.ppo.gamma, n_envs) if cfg.ppo.normalize_rewards else None
+    if cfg.resume:
+        training_step = load_training_state(last_checkpoint, optimizer)
+        env_steps = training_step["env_steps"]
+        schedule_state = ScheduleState(training_step["optim_step"], training_step["ppo_iteration"])
+        if reward_scaler and training_step["reward_scaler"]:
+            reward_scaler.load_state_dict(training_step["reward_scaler"])
+        cfg.policy.pretrained_path = initial_policy_path  # the run's origin, for the method label
+    elif cfg.ppo.reset_log_std is not None and cfg.total_env_steps > 0:
+        with torch.no_grad():
+            policy.log_std.fill_(cfg.ppo.reset_log_std)
+
+    # The workers load config and processors once from disk; weights travel with every rollout request.
+    policy_dir = cfg.output_dir / ROLLOUT_POLICY_DIR
+    policy.save_pretrained(policy_dir)
+    preprocessor.save_pretrained(policy_dir)
+    postprocessor.save_pretrained(policy_dir)
+    gym_kwargs = env_gym_kwargs(cfg, policy.config.uses_images)
+    # Fresh worker seeds after a resume, so a resumed run does not replay the episodes it has seen.
+    workers: RolloutWorkers = make_workers(
+        cfg.rollout.n_workers, worker_kwargs(cfg, policy_dir, gym_kwargs, cfg.seed + 104_729 * schedule_state.ppo_iteration))
+    demo_batches = DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule_state.ppo_iteration, preprocessor)
+    logger = RunLogger(cfg, env_steps if cfg.resume else None)
+    steps_per_iteration = n_envs * cfg.rollout.steps_per_env
+
+    def evaluate(n_episodes: int) -> tuple[dict, list[EpisodeStats]]:
+        seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
+        episodes = workers.evaluate(policy.state_dict(), seeds)
+        return summarize_episodes(episodes, "eval"), episodes
+
+    start_time, last_eval, last_save = time.time(), env_steps, env_steps
+    progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}")
+    try:
+        while env_steps < cfg.total_env_steps:
+            collect_start = time.time()
+            trajectories = workers.collect(policy.state_dict(), cfg.rollout.steps_per_env)
+            env_steps += steps_per_iteration
+            learn_start = time.time()
+            rewards = reward_scaler(trajectories.rewards, trajectories.dones) if reward_scaler else trajectories.rewards
+            metrics = ppo_update(agent, optimizer, trajectories, rewards, cfg.ppo, cfg.schedule, schedule_state,
+                                 demo_batches, policy.forward)
+            row = {"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
+                   "optim_step": schedule_state.optim_step, "wall_s": time.time() - start_time,
+                   "collect_s": learn_start - collect_start, "learn_s": time.time() - learn_start,
+                   **metrics, **summarize_episodes(trajectories.episodes, "train")}
+            row["theta"] = schedule_state.theta(cfg.schedule)  # theta for the next update
+            if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
+                row.update(evaluate(cfg.eval_episodes)[0])
+                last_eval = env_steps
+            logger.log(row)
+            progress.update(steps_per_iteration)
+            progress.set_postfix(theta=f"{row['theta']:.3f}", ret=f"{row.get('train_return', float('nan')):.0f}",
+                                 succ=f"{row.get('train_success', float('nan')):.2f}")
+            if env_steps - last_save >= cfg.save_freq or env_steps >= cfg.total_env_steps:
+                save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler)
+                last_save = env_steps
+        progress.close()
+        if env_steps == 0 or not last_checkpoint.exists():  # BC only: still leave a checkpoint to evaluate
+            save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler)
+        final, episodes = evaluate(cfg.final_eval_episodes)
+    finally:
+        workers.close()
+        logger.close()
+    result = {"method": cfg.method, "env_steps": env_steps, "theta": schedule_state.theta(cfg.schedule),
+              "optim_step": schedule_state.optim_step, "dataset_root": str(cfg.dataset.root),
+              "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time, **final,
+              "episodes": [asdict(e) for e in episodes]}
+    (cfg.output_dir / "eval_final.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+@parser.wrap()
+def finetune_cli(cfg: FinetuneConfig) -> None:
+    result = finetune(cfg)
+    print(
+        f"\nbcrl-finetune ({result['method']}): {result['env_steps']} env steps, {result['optim_step']} optimisation"
+        f" steps, theta_t = {result['theta']:.4f}, {result['wall_s']:.0f} s\n"
+        f"  final evaluation over {result['eval_episodes']} episodes: return {result['eval_return']:.1f}"
+        f" +/- {result['eval_return_ci95']:.1f} (95 % CI), success {100 * result['eval_success']:.0f} %,"
+        f" steps to lift {result['eval_steps_to_lift']:.1f}\n"
+        f"  checkpoint: {cfg.output_dir / 'checkpoints' / 'last' / 'pretrained_model'}\n"
+        f"  logs: {cfg.output_dir / 'logs.csv'}; evaluation: {cfg.output_dir / 'eval_final.json'}"
+    )
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    finetune_cli()
+
+
+if __name__ == "__main__":
+    main()

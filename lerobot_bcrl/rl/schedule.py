@@ -1,0 +1,68 @@
+"""theta_t, the weight of the BC term in `L = theta_t * L_BC + (1 - theta_t) * L_PPO` (method.md section 4).
+
+Schedules are functions of the optimisation step (plus, for DAPG, the PPO iteration); their state is one
+integer, saved with every checkpoint so that a resumed run continues the same theta_t.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+SCHEDULE_TYPES = ("auto", "three_phase", "step", "constant", "dapg")
+
+
+@dataclass
+class ScheduleConfig:
+    # auto: three_phase when fine-tuning a BC checkpoint, constant 0 (pure PPO) from scratch (bcrl-finetune).
+    # three_phase: 1 before alpha, exp(-(t - alpha) / beta) until phi, 0 after (the paper's schedule).
+    # step: 1 until step_start, then x step_factor every step_every optimisation steps (its step variant).
+    # constant: theta_t = constant_theta always (1 = pure BC, 0 = pure PPO).
+    # dapg: lambda0 * lambda1^k, k = PPO iteration (Rajeswaran et al. 2018, for comparison).
+    type: str = "auto"
+    alpha: int = 0  # optimisation steps of pure BC before the decay starts
+    beta: float = 2000.0  # decay time constant, in optimisation steps
+    phi: int = 10_000  # optimisation step from which theta_t = 0 (pure PPO)
+    step_start: int = 10_000  # step variant: first decay
+    step_every: int = 100  # step variant: decay period, in optimisation steps
+    step_factor: float = 0.97  # step variant: multiplier per period
+    constant_theta: float = 0.0  # constant schedule's value
+    dapg_lambda0: float = 0.1  # DAPG: initial weight
+    dapg_lambda1: float = 0.95  # DAPG: decay per PPO iteration
+
+    def __post_init__(self):
+        if self.type not in SCHEDULE_TYPES:
+            raise ValueError(f"schedule.type must be one of {SCHEDULE_TYPES}, got {self.type!r}")
+        if self.type == "three_phase" and not (0 <= self.alpha <= self.phi and self.beta > 0):
+            raise ValueError("three_phase needs 0 <= alpha <= phi and beta > 0")
+
+
+def theta_at(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int = 0) -> float:
+    """theta_t in [0, 1] after `optim_step` optimisation steps (and `ppo_iteration` rollouts, for DAPG)."""
+    if cfg.type == "three_phase":
+        if optim_step < cfg.alpha:
+            return 1.0
+        if optim_step >= cfg.phi:
+            return 0.0
+        return math.exp(-(optim_step - cfg.alpha) / cfg.beta)
+    if cfg.type == "step":
+        if optim_step < cfg.step_start:
+            return 1.0
+        n_decays = (optim_step - cfg.step_start) // cfg.step_every  # 1 at step_start, x factor 100 steps on
+        return cfg.step_factor**n_decays
+    if cfg.type == "constant":
+        return cfg.constant_theta
+    if cfg.type == "dapg":
+        return min(1.0, cfg.dapg_lambda0 * cfg.dapg_lambda1**ppo_iteration)
+    raise ValueError(f"schedule type {cfg.type!r} has no value until it is resolved (bcrl-finetune resolves 'auto')")
+
+
+@dataclass
+class ScheduleState:
+    """What a checkpoint stores of the schedule: the counters theta_t is a function of."""
+
+    optim_step: int = 0
+    ppo_iteration: int = 0
+
+    def theta(self, cfg: ScheduleConfig) -> float:
+        return theta_at(cfg, self.optim_step, self.ppo_iteration)

@@ -1,0 +1,101 @@
+"""GAE and the PPO loss against hand-computed values; theta_t = 1 gives exactly the BC gradients."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, whole_dataset_batch  # noqa: F401
+
+from lerobot_bcrl.rl.ppo import PPOConfig, RewardScaler, bcrl_loss, compute_gae, ppo_loss_terms
+
+
+def test_gae_matches_a_hand_computed_trajectory():
+    # One env, 3 steps, the episode ends after step 1 (index 1); gamma 0.9, lambda 0.8.
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    values = torch.tensor([[0.5], [1.0], [2.0]])
+    dones = torch.tensor([[0.0], [1.0], [0.0]])
+    last_values = torch.tensor([4.0])
+    gamma, lam = 0.9, 0.8
+    delta2 = 3.0 + gamma * 4.0 - 2.0  # 4.6
+    delta1 = 2.0 - 1.0  # 1.0: no bootstrap across the episode end
+    delta0 = 1.0 + gamma * 1.0 - 0.5  # 1.4
+    a2 = delta2
+    a1 = delta1
+    a0 = delta0 + gamma * lam * a1
+    advantages, returns = compute_gae(rewards, values, dones, last_values, gamma, lam)
+    assert advantages[:, 0].tolist() == pytest.approx([a0, a1, a2])
+    assert returns[:, 0].tolist() == pytest.approx([a0 + 0.5, a1 + 1.0, a2 + 2.0])
+
+
+def test_gae_with_lambda_one_is_discounted_return_minus_value():
+    rewards = torch.tensor([[1.0], [1.0], [1.0]])
+    values = torch.zeros(3, 1)
+    advantages, _ = compute_gae(rewards, values, torch.zeros(3, 1), torch.tensor([10.0]), 0.5, 1.0)
+    assert advantages[0, 0].item() == pytest.approx(1 + 0.5 + 0.25 + 0.125 * 10)
+
+
+def test_ppo_loss_terms_by_hand():
+    old_log_prob = torch.zeros(3)
+    new_log_prob = torch.log(torch.tensor([1.5, 0.5, 1.1]))  # ratios 1.5, 0.5, 1.1
+    advantages = torch.tensor([1.0, -2.0, 3.0])
+    terms = ppo_loss_terms(new_log_prob, old_log_prob, advantages, torch.tensor([1.0, 2.0, 3.0]),
+                           torch.tensor([0.0, 2.0, 5.0]), clip_eps=0.2)
+    # min(r*A, clip(r)*A): 1.5*1 vs 1.2*1 -> 1.2; 0.5*-2=-1 vs 0.8*-2=-1.6 -> -1.6; 1.1*3=3.3 both
+    assert terms["policy_loss"].item() == pytest.approx(-(1.2 - 1.6 + 3.3) / 3)
+    assert terms["value_loss"].item() == pytest.approx(0.5 * (1 + 0 + 4) / 3)
+    assert terms["clipfrac"].item() == pytest.approx(2 / 3)
+    ratios = np.array([1.5, 0.5, 1.1])
+    assert terms["approx_kl"].item() == pytest.approx(np.mean(ratios - 1 - np.log(ratios)), rel=1e-5)
+
+
+def test_clipped_ratio_gives_no_policy_gradient():
+    new_log_prob = torch.tensor([math.log(2.0)], requires_grad=True)  # ratio 2 > 1.2 with a positive advantage
+    terms = ppo_loss_terms(new_log_prob, torch.zeros(1), torch.ones(1), torch.zeros(1), torch.zeros(1), 0.2)
+    terms["policy_loss"].backward()
+    assert new_log_prob.grad.item() == 0.0
+
+
+def test_reward_scaler_divides_by_return_std():
+    scaler = RewardScaler(gamma=0.0, n_envs=1)  # gamma 0: the "return" is the reward itself
+    rewards = np.random.default_rng(0).normal(0, 3.0, size=(5000, 1))
+    scaled = scaler(rewards, np.zeros_like(rewards))
+    assert math.sqrt(scaler.var) == pytest.approx(3.0, rel=0.05)
+    assert scaled[-1, 0] == pytest.approx(rewards[-1, 0] / math.sqrt(scaler.var + 1e-8))
+
+
+def _grads(module) -> dict[str, torch.Tensor]:
+    return {n: (p.grad.clone() if p.grad is not None else torch.zeros_like(p)) for n, p in module.named_parameters()}
+
+
+def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
+    from lerobot_bcrl.rl.agent import BCRLAgent
+
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    demo_batch = preprocessor(whole_dataset_batch(dataset))
+    agent = BCRLAgent(policy, preprocessor)
+    obs = {k: v for k, v in demo_batch.items() if k.startswith("observation.")}
+    with torch.no_grad():
+        actions, log_probs, values = policy.sample_actions(obs)
+    n = actions.shape[0]
+    minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3,  # a ratio != 1: a real PPO gradient
+                 "advantages": torch.randn(n), "returns": torch.randn(n)}
+
+    policy.zero_grad()
+    policy.forward(demo_batch)[0].backward()
+    bc_grads = _grads(policy)
+
+    policy.zero_grad()
+    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward)
+    loss.backward()
+    for name, grad in _grads(policy).items():
+        torch.testing.assert_close(grad, bc_grads[name], msg=name)
+
+    policy.zero_grad()
+    bcrl_loss(agent, minibatch, demo_batch, theta=0.5, cfg=PPOConfig(), bc_forward=policy.forward)[0].backward()
+    mixed = _grads(policy)
+    assert any(not torch.allclose(mixed[n], 0.5 * bc_grads[n]) for n in mixed)  # PPO contributes below theta = 1
+    assert metrics["bc_loss"] > 0 and "policy_loss" in metrics

@@ -1,0 +1,52 @@
+"""theta_t at the boundaries of every schedule, and the schedule state that checkpoints carry."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState, theta_at
+
+
+def test_three_phase_boundaries():
+    cfg = ScheduleConfig(type="three_phase", alpha=100, beta=50.0, phi=300)
+    assert theta_at(cfg, 0) == 1.0
+    assert theta_at(cfg, 99) == 1.0
+    assert theta_at(cfg, 100) == pytest.approx(1.0)  # exp(0): continuous where the decay starts
+    assert theta_at(cfg, 150) == pytest.approx(math.exp(-1))
+    assert theta_at(cfg, 299) == pytest.approx(math.exp(-199 / 50))
+    assert theta_at(cfg, 300) == 0.0
+    assert theta_at(cfg, 10**9) == 0.0
+    values = [theta_at(cfg, t) for t in range(0, 400, 7)]
+    assert all(a >= b for a, b in zip(values, values[1:]))  # never increases
+
+
+def test_step_variant_decays_by_factor_every_period_after_start():
+    cfg = ScheduleConfig(type="step", step_start=10_000, step_every=100, step_factor=0.97)
+    assert theta_at(cfg, 9_999) == 1.0
+    assert theta_at(cfg, 10_000) == 1.0
+    assert theta_at(cfg, 10_099) == 1.0
+    assert theta_at(cfg, 10_100) == pytest.approx(0.97)
+    assert theta_at(cfg, 10_250) == pytest.approx(0.97**2)
+    assert theta_at(cfg, 20_000) == pytest.approx(0.97**100)
+
+
+def test_constant_and_dapg():
+    assert theta_at(ScheduleConfig(type="constant", constant_theta=0.3), 12345) == 0.3
+    dapg = ScheduleConfig(type="dapg", dapg_lambda0=0.1, dapg_lambda1=0.9)
+    assert theta_at(dapg, 0, ppo_iteration=0) == pytest.approx(0.1)
+    assert theta_at(dapg, 999, ppo_iteration=3) == pytest.approx(0.1 * 0.9**3)
+
+
+def test_invalid_schedules_are_refused():
+    with pytest.raises(ValueError):
+        ScheduleConfig(type="linear")
+    with pytest.raises(ValueError):
+        ScheduleConfig(type="three_phase", alpha=10, phi=5)
+
+
+def test_state_gives_theta_from_its_counters():
+    cfg = ScheduleConfig(type="three_phase", alpha=0, beta=10.0, phi=100)
+    state = ScheduleState(optim_step=20, ppo_iteration=2)
+    assert state.theta(cfg) == pytest.approx(math.exp(-2))
