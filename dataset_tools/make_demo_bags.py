@@ -232,6 +232,13 @@ def bag_messages(demo: SimulatedDemo, cfg: MakeDemoBagsConfig, factory: _Message
         t_ns = stamp_ns(time_s)
         msg = factory.image(t_ns, frame) if factory.ros1 else factory.compressed_image(t_ns, frame)
         messages.append((camera_topic, msg, t_ns + int(rng.uniform(5e-3, 15e-3) * 1e9)))
+    # One publisher's messages arrive in order (TCPROS/DDS keep order per connection): log times per
+    # topic never go backwards, even when latency jitters more than the sample period.
+    last_log_ns: dict[str, int] = {}
+    for k, (topic, msg, log_ns) in enumerate(messages):
+        log_ns = max(log_ns, last_log_ns.get(topic, 0) + 1)
+        last_log_ns[topic] = log_ns
+        messages[k] = (topic, msg, log_ns)
     messages.sort(key=lambda m: m[2])
     return messages
 
