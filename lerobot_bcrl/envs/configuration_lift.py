@@ -32,6 +32,7 @@ class LiftEnvConfig(EnvConfig):
     terminate_on_success: bool = False  # the paper keeps going: return counts lifted steps
     render_mode: str = "rgb_array"
     render_size: int = 128  # size of frames from render() (lerobot-eval videos)
+    rerun_dir: str | None = None  # write one rerun .rrd per episode here (with our policy's predictions)
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
@@ -68,5 +69,6 @@ class LiftEnvConfig(EnvConfig):
             "terminate_on_success": self.terminate_on_success,
             "render_mode": self.render_mode,
             "render_size": self.render_size,
+            "rerun_dir": self.rerun_dir,
             "max_episode_steps": self.episode_length,
         }

@@ -11,7 +11,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lerobot_bcrl import geometry
+from lerobot_bcrl import features, geometry, rerun_log
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.envs.rendering import CameraRenderer
 from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, STATE_DIM
@@ -41,6 +41,7 @@ class LiftEnv(gym.Env):
         render_mode: str = "rgb_array",
         render_size: int = 128,
         model_seed: int = 0,
+        rerun_dir: str | None = None,
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}")
@@ -77,6 +78,12 @@ class LiftEnv(gym.Env):
         self._robosuite_rng_state = np.random.RandomState().get_state()
         self._step_count = 0
         self.n_clamped_actions = 0
+        # Optional: one .rrd file per episode with what happened (and the policy's predictions, when the
+        # policy runs in this process).
+        self._rerun_dir = rerun_dir
+        self._rerun_slot = rerun_log.RolloutSlot() if rerun_dir else None
+        self._n_episodes = 0
+        self._last_obs: dict | None = None
 
         spaces: dict[str, gym.Space] = {
             "agent_pos": gym.spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32),
@@ -122,7 +129,11 @@ class LiftEnv(gym.Env):
             self._robosuite_rng_state = np.random.get_state()
             np.random.set_state(outer_state)
         self._step_count = 0
-        return self._observation(sim_obs), {"is_success": False}
+        obs = self._observation(sim_obs)
+        if self._rerun_slot is not None:
+            self._start_rerun_episode()
+            self._last_obs = obs
+        return obs, {"is_success": False}
 
     def step(self, action: np.ndarray):
         controller_action, clamped = controller.delta_action_to_controller(action)
@@ -133,7 +144,11 @@ class LiftEnv(gym.Env):
         terminated = self.terminate_on_success and is_success
         truncated = self._step_count >= self.horizon
         info = {"is_success": is_success, "action_clamped": clamped}
-        return self._observation(sim_obs), float(reward), terminated, truncated, info
+        obs = self._observation(sim_obs)
+        if self._rerun_slot is not None and self._rerun_slot.logger is not None:
+            self._log_rerun_step(action, reward, is_success, terminated or truncated)
+            self._last_obs = obs
+        return obs, float(reward), terminated, truncated, info
 
     def render(self) -> np.ndarray:
         if self._camera is not None and self.render_size == self.image_size and self._pixels is not None:
@@ -144,7 +159,39 @@ class LiftEnv(gym.Env):
             )
         return self._render_camera.render(self._data)
 
+    def _start_rerun_episode(self) -> None:
+        import os
+        from pathlib import Path
+
+        slot = self._rerun_slot
+        if slot.logger is not None:
+            slot.logger.close()
+        path = Path(self._rerun_dir) / f"rollout_{os.getpid()}_{rerun_log._ROLLOUT_SLOTS.index(slot)}_{self._n_episodes:04d}.rrd"
+        slot.logger = rerun_log.EpisodeLogger(f"bcrl_lift/{path.stem}", save_path=path, fps=self.metadata["render_fps"])
+        slot.frame_index = 0
+        self._n_episodes += 1
+
+    def _log_rerun_step(self, action, reward: float, is_success: bool, done: bool) -> None:
+        obs, slot = self._last_obs, self._rerun_slot
+        frame = {
+            features.STATE_KEY: obs["agent_pos"],
+            features.ENV_STATE_KEY: obs["environment_state"],
+            features.ACTION_KEY: np.asarray(action, dtype=np.float32),
+            features.REWARD_KEY: reward,
+            features.SUCCESS_KEY: is_success,
+            features.DONE_KEY: done,
+        }
+        if "pixels" in obs:
+            frame[features.IMAGE_KEY] = obs["pixels"][CAMERA_NAME]
+        slot.logger.log_step(slot.frame_index, frame)
+        slot.frame_index += 1
+
     def close(self) -> None:
+        if self._rerun_slot is not None and self._rerun_slot.logger is not None:
+            self._rerun_slot.logger.close()
+            self._rerun_slot.logger = None
+        if self._rerun_slot in rerun_log._ROLLOUT_SLOTS:
+            rerun_log._ROLLOUT_SLOTS.remove(self._rerun_slot)
         for renderer in (self._camera, self._render_camera):
             if renderer is not None:
                 renderer.close()

@@ -23,6 +23,7 @@ from lerobot_bcrl.features import (
     STATE_KEY,
 )
 from lerobot_bcrl.geometry import GRIPPER_CLOSED, GRIPPER_OPEN
+from lerobot_bcrl import rerun_log
 from lerobot_bcrl.policies.bcrl import losses
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
@@ -193,7 +194,9 @@ class BCRLPolicy(PreTrainedPolicy):
         else:
             continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_quat_xyzw], dim=-1)
             gripper_class = outputs.gripper_logits.argmax(dim=-1)
-        return self.to_env_action(continuous, gripper_class)
+        actions = self.to_env_action(continuous, gripper_class)
+        rerun_log.log_policy_step(actions, outputs.value)  # no-op unless our envs log rollouts to rerun
+        return actions
 
     # -- PPO interface ----------------------------------------------------------------------------------
     def sample_actions(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
