@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import shlex
 import sys
 from dataclasses import asdict, dataclass, field
@@ -161,7 +160,7 @@ def print_report(root: Path, rows: list[dict]) -> None:
         a = json.loads(r["alignment"])
         dropped = sum(a["camera_frames_dropped"].values())
         repeated = sum(a["camera_frames_repeated"].values())
-        grasp = "no grasp" if math.isnan(r["grasp_time_s"]) else f"grasp at {r['grasp_time_s']:.2f} s"
+        grasp = "no grasp" if r["grasp_time_s"] < 0 else f"grasp at {r['grasp_time_s']:.2f} s"
         print(f"  {r['episode_index']:3d} {Path(r['source']).name}: {r['n_frames']} frames ({r['duration_s']:.2f} s, {grasp}), "
               f"poses from {a['pose_source']}, {a['joint_samples']} joint samples ({a['joint_gaps']} gaps), "
               f"camera dropped {dropped} / repeated {repeated}, clamped {r['n_clamped_actions']}, trimmed {r['n_trimmed_frames']}")  # fmt: skip

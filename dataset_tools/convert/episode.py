@@ -21,7 +21,7 @@ class EpisodeStats:
     n_frames: int
     n_clamped_actions: int
     n_trimmed_frames: int
-    grasp_time_s: float  # first closed frame's time on the grid, NaN if never closed
+    grasp_time_s: float  # first closed frame's time on the grid, -1 if never closed (NaN reads as missing)
     duration_s: float
 
 
@@ -104,7 +104,7 @@ def episode_frames(
         n_frames=n,
         n_clamped_actions=n_clamped,
         n_trimmed_frames=len(aligned.time_s) - n_keep,
-        grasp_time_s=float(aligned.time_s[closed[0] + 1]) if closed.size else float("nan"),
+        grasp_time_s=float(aligned.time_s[closed[0] + 1]) if closed.size else -1.0,
         duration_s=float(aligned.time_s[n] - aligned.time_s[0]),
     )
     return frames, stats
