@@ -23,6 +23,8 @@ class BCRLConfig(PreTrainedConfig):
     # "pixels": CNN on the camera + observation.state; "low_dim": observation.environment_state +
     # observation.state, no CNN; "auto": pixels when the features hold a camera, low_dim otherwise.
     observation_mode: str = "auto"
+    # Nothing is pushed to a hub unless asked (LeRobot's default is True, which also demands a repo_id).
+    push_to_hub: bool = False
 
     # -- network ---------------------------------------------------------------------------------------
     cnn_channels: tuple[int, ...] = (16, 32, 32)  # conv widths; the first two convs have stride 2
