@@ -148,6 +148,17 @@ class HubHandler(BaseHTTPRequestHandler):
             return None
         return repo
 
+    def _revision(self, repo_type: str, repo_id: str, rev: str, write: bool = False) -> tuple[Repo, str] | None:
+        """(repo, commit sha) for a branch, tag or sha; sends the Hub's error and returns None if missing."""
+        repo = self._repo(repo_type, repo_id, write=write)
+        if repo is None:
+            return None
+        sha = repo.resolve(rev)
+        if sha is None:
+            self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
+            return None
+        return repo, sha
+
     @property
     def base_url(self) -> str:
         host, port = self.server.server_address[:2]
@@ -220,12 +231,10 @@ class HubHandler(BaseHTTPRequestHandler):
         self._send(200, {"errors": [], "warnings": []})  # accepted as is: no card schema here
 
     def repo_info(self, t, repo, rev="main"):
-        r = self._repo(t, repo)
-        if r is None:
+        found = self._revision(t, repo, rev)
+        if found is None:
             return
-        sha = r.resolve(rev)
-        if sha is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
+        r, sha = found
         files = r.commits[sha]
         self._send(
             200,
@@ -281,28 +290,24 @@ class HubHandler(BaseHTTPRequestHandler):
         return out
 
     def tree(self, t, repo, rev, path=None):
-        r = self._repo(t, repo)
-        if r is None:
+        found = self._revision(t, repo, rev)
+        if found is None:
             return
-        sha = r.resolve(rev)
-        if sha is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
+        r, sha = found
         recursive = self.query.get("recursive", ["false"])[0].lower() in ("1", "true")
         self._send(200, self._listing(r.commits[sha], unquote(path or ""), recursive))
 
     def paths_info(self, t, repo, rev):
-        r = self._repo(t, repo)
-        if r is None:
+        found = self._revision(t, repo, rev)
+        if found is None:
             return
+        r, sha = found
         body = self._body()
         content_type = self.headers.get("Content-Type", "")
         if "json" in content_type:
             paths = json.loads(body).get("paths", [])
         else:
             paths = parse_qs(body.decode()).get("paths", [])
-        sha = r.resolve(rev)
-        if sha is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
         files = r.commits[sha]
         self._send(200, [self._entry_json(p, files[p]) for p in paths if p in files])
 
@@ -356,12 +361,10 @@ class HubHandler(BaseHTTPRequestHandler):
         self._send(200 if exists else 404, {})
 
     def commit(self, t, repo, rev):
-        r = self._repo(t, repo, write=True)
-        if r is None:
+        found = self._revision(t, repo, rev, write=True)
+        if found is None:
             return
-        parent = r.resolve(rev)
-        if parent is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
+        r, parent = found
         files = dict(r.commits[parent])
         state = self.server.state
         lines = [json.loads(line) for line in self._body().splitlines() if line.strip()]
@@ -388,13 +391,11 @@ class HubHandler(BaseHTTPRequestHandler):
         self._send(200, {"commitUrl": url, "commitOid": sha, "pullRequestUrl": None})
 
     def create_tag(self, t, repo, rev):
-        r = self._repo(t, repo, write=True)
-        if r is None:
+        found = self._revision(t, repo, rev, write=True)
+        if found is None:
             return
+        r, sha = found
         payload = json.loads(self._body() or b"{}")
-        sha = r.resolve(rev)
-        if sha is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
         if payload["tag"] in r.tags:
             return self._error(409, "Conflict", f"tag {payload['tag']} already exists")
         r.tags[payload["tag"]] = sha
@@ -421,12 +422,10 @@ class HubHandler(BaseHTTPRequestHandler):
 
     # -- downloads -----------------------------------------------------------------------------------
     def resolve(self, t, repo, rev, path):
-        r = self._repo(t or "model", repo)
-        if r is None:
+        found = self._revision(t or "model", repo, rev)
+        if found is None:
             return
-        sha = r.resolve(rev)
-        if sha is None:
-            return self._error(404, "RevisionNotFound", f"Invalid rev id: {rev}")
+        r, sha = found
         path = unquote(path)
         entry = r.commits[sha].get(path)
         if entry is None:
