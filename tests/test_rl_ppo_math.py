@@ -79,7 +79,7 @@ def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
     agent = BCRLAgent(policy, preprocessor)
     obs = {k: v for k, v in demo_batch.items() if k.startswith("observation.")}
     with torch.no_grad():
-        actions, log_probs, values = policy.sample_actions(obs)
+        actions, log_probs, values = agent.sample(obs)
     n = actions.shape[0]
     minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3,  # a ratio != 1: a real PPO gradient
                  "advantages": torch.randn(n), "returns": torch.randn(n)}

@@ -19,7 +19,8 @@ class Agent(Protocol):
 
     def observation_batch(self, raw_obs: dict[str, np.ndarray]) -> dict[str, Tensor]: ...
     def sample(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]: ...  # actions, log_prob, value
-    def mean_action(self, obs: dict[str, Tensor]) -> Tensor: ...
+    def to_env_action(self, actions: Tensor) -> Tensor: ...  # what env.step gets (e.g. clamped)
+    def mean_action(self, obs: dict[str, Tensor]) -> Tensor: ...  # deterministic, already an env action
     def value(self, obs: dict[str, Tensor]) -> Tensor: ...
     def evaluate(self, obs: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, Tensor, Tensor]: ...
 
@@ -75,14 +76,32 @@ class BCRLAgent:
 
         return self.preprocessor(preprocess_observation(unflatten_observation(raw_obs)))
 
+    # PPO learns on the raw sample [delta_pos / scale, quat (4), gripper class]: its log-prob is exact. The env
+    # gets its projection (clamped |delta_pos|, unit quaternion, -1/+1 gripper) from `to_env_action`; taking
+    # log-probs at the projected point instead makes the ratio explode wherever the clamp is active.
     def sample(self, obs):
-        return self.policy.sample_actions(obs)
+        outputs = self.policy.model(obs)
+        continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
+        raw_actions = torch.cat([continuous_dist.sample(), gripper_dist.sample()[:, None].float()], dim=-1)
+        log_prob, _ = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
+        return raw_actions, log_prob, outputs.value
+
+    def evaluate(self, obs, raw_actions):
+        outputs = self.policy.model(obs)
+        continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
+        log_prob, entropy = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
+        return log_prob, entropy, outputs.value
+
+    @staticmethod
+    def _log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions):
+        log_prob = continuous_dist.log_prob(raw_actions[:, :7]).sum(-1) + gripper_dist.log_prob(raw_actions[:, 7].long())
+        return log_prob, continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
+
+    def to_env_action(self, raw_actions):
+        return self.policy.to_env_action(raw_actions[:, :7], raw_actions[:, 7].long())
 
     def mean_action(self, obs):
         return self.policy.select_action(obs, sample=False)
 
     def value(self, obs):
         return self.policy.model(obs).value
-
-    def evaluate(self, obs, actions):
-        return self.policy.evaluate_actions(obs, actions)

@@ -31,7 +31,7 @@ class Trajectories:
     """T steps of N envs, time-major; the learner bootstraps truncated episodes with `truncation_values`."""
 
     observations: dict[str, np.ndarray]  # (T, N, ...) raw env observations, flattened keys
-    actions: np.ndarray  # (T, N, A)
+    actions: np.ndarray  # (T, N, A) as the agent samples them (before `to_env_action`)
     log_probs: np.ndarray  # (T, N)
     values: np.ndarray  # (T, N)
     rewards: np.ndarray  # (T, N) env rewards
@@ -70,8 +70,8 @@ class RolloutWorker:
 
     def __init__(self, make_env: Callable[[], gym.Env], make_agent: Callable[[], Agent], n_envs: int,
                  seed: int):
-        torch.manual_seed(seed)
         self.agent = make_agent()
+        torch.manual_seed(seed)  # after the agent is built: its initialisation may seed torch itself
         self.envs = [make_env() for _ in range(n_envs)]
         self.make_env = make_env
         self.eval_env: gym.Env | None = None
@@ -108,8 +108,9 @@ class RolloutWorker:
             action_steps.append(actions.numpy())
             log_prob_steps.append(log_probs.numpy())
             value_steps.append(values.numpy())
+            env_actions = self.agent.to_env_action(actions).numpy()
             for i, env in enumerate(self.envs):
-                obs, reward, terminated, truncated, info = env.step(action_steps[-1][i])
+                obs, reward, terminated, truncated, info = env.step(env_actions[i])
                 stats = self.running[i]
                 stats.episode_return += float(reward)
                 stats.length += 1
@@ -203,7 +204,10 @@ def _worker_main(connection, worker_kwargs: dict) -> None:
     worker = RolloutWorker(**worker_kwargs)
     connection.send("ready")
     while True:
-        command, args = connection.recv()
+        try:
+            command, args = connection.recv()
+        except (EOFError, KeyboardInterrupt):  # the learner died: do not linger as an orphan
+            command = "close"
         if command == "close":
             worker.close()
             connection.close()

@@ -1,0 +1,164 @@
+"""`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2 (markdown + JSON) and PNG plots.
+
+Demonstrators' return comes from each run's dataset (`episode_return` in the episode metadata); policy return,
+success and steps-to-lift from the run's `eval_final.json`; curves from its `logs.csv`.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+
+METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
+
+
+@dataclass
+class ReportConfig:
+    runs: list[str] = field(default_factory=lambda: ["outputs/rl/*"])  # run dirs or globs (with eval_final.json)
+    output_dir: Path = Path("outputs/report")
+
+
+def mean_ci95(values: list[float]) -> tuple[float, float]:
+    array = np.asarray(values, dtype=float)
+    if len(array) < 2:
+        return float(array.mean()) if len(array) else float("nan"), float("nan")
+    return float(array.mean()), float(1.96 * array.std(ddof=1) / math.sqrt(len(array)))
+
+
+def wilson_ci95(successes: int, n: int) -> tuple[float, float]:
+    """Wilson score interval for a success rate (sound at 0 % and 100 %, unlike mean +/- 1.96 se)."""
+    if n == 0:
+        return float("nan"), float("nan")
+    z, p = 1.96, successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def demonstrators(repo_id: str, root: str) -> dict:
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    episodes = LeRobotDatasetMetadata(repo_id, root=root).episodes
+    returns = list(episodes["episode_return"])
+    sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
+    mean, ci = mean_ci95(returns)
+    return {"sigma": sigma, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
+            "demo_success": float(np.mean(episodes["success"])) if "success" in episodes.column_names else float("nan")}
+
+
+def summarize_run(run_dir: Path) -> dict:
+    result = json.loads((run_dir / "eval_final.json").read_text())
+    episodes = result["episodes"]
+    returns = [e["episode_return"] for e in episodes]
+    successes = sum(bool(e["success"]) for e in episodes)
+    lifts = [e["steps_to_lift"] for e in episodes if e["steps_to_lift"] is not None]
+    mean, ci = mean_ci95(returns)
+    demo = demonstrators(result["dataset_repo_id"], result["dataset_root"])
+    return {
+        "run": str(run_dir), "dataset_root": result["dataset_root"], "method": result["method"], "env_steps": result["env_steps"], **demo,
+        "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
+        "success": successes / len(episodes), "success_ci95": wilson_ci95(successes, len(episodes)),
+        "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
+    }
+
+
+def markdown_tables(rows: list[dict]) -> str:
+    # One table row per dataset (a sigma may have several datasets, e.g. a small demo and a full one).
+    sigmas = sorted({(r["sigma"], r["dataset_root"]) for r in rows})
+    by_key = {((r["sigma"], r["dataset_root"]), r["method"]): r for r in rows}
+    methods = [m for m in METHOD_ORDER if any(r["method"] == m for r in rows)]
+    methods += sorted({r["method"] for r in rows} - set(methods))
+    fmt = lambda r, key: f"{r[key]:.1f} +/- {r[key + '_ci95']:.1f}"  # noqa: E731
+    lines = ["Table 1: mean return (95 % CI), sparse reward, horizon 200 (max 450)", "",
+             "| sigma | demonstrators | " + " | ".join(methods) + " |", "|---" * (len(methods) + 2) + "|"]
+    for sigma in sigmas:
+        demo = next(r for r in rows if (r["sigma"], r["dataset_root"]) == sigma)
+        cells = [fmt(by_key[sigma, m], "return") if (sigma, m) in by_key else "-" for m in methods]
+        lines.append(f"| {sigma[0]:g} | {fmt(demo, 'demo_return')} | " + " | ".join(cells) + " |")
+    lines += ["", "Table 2: % of the demonstrators' return recovered", "",
+              "| sigma | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for sigma in sigmas:
+        cells = [f"{by_key[sigma, m]['recovered_pct']:.0f} %" if (sigma, m) in by_key else "-" for m in methods]
+        lines.append(f"| {sigma[0]:g} | " + " | ".join(cells) + " |")
+    lines += ["", "Details", "", "| sigma | method | env steps | episodes | return (95 % CI) | % recovered | success (95 % CI) | steps to lift | run |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["sigma"], r["method"])):
+        low, high = r["success_ci95"]
+        lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {r['episodes']} | {fmt(r, 'return')} |"
+                     f" {r['recovered_pct']:.0f} % | {100 * r['success']:.0f} % ({100 * low:.0f}-{100 * high:.0f}) |"
+                     f" {r['steps_to_lift']:.1f} | `{r['run']}` |")
+    return "\n".join(lines) + "\n"
+
+
+def read_log(run_dir: Path) -> dict[str, np.ndarray]:
+    path = run_dir / "logs.csv"
+    if not path.exists():
+        return {}
+    rows = list(csv.DictReader(path.open()))
+    to_float = lambda v: float(v) if v not in ("", None) else float("nan")  # noqa: E731
+    return {key: np.array([to_float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
+
+
+def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figures = {
+        "return_success.png": [("train_return", "train return"), ("eval_return", "eval return (deterministic)"),
+                               ("train_success", "train success"), ("eval_success", "eval success")],
+        "bc_terms.png": [("bc_loss", "BC loss"), ("bc_cosine", "cosine distance of delta_pos"),
+                         ("bc_gripper_ce", "gripper CE"), ("bc_quat", "quaternion distance")],
+        "theta_ppo.png": [("theta", "theta_t"), ("approx_kl", "approx KL"), ("clipfrac", "clip fraction"),
+                          ("explained_variance", "explained variance")],
+    }
+    written = []
+    for filename, panels in figures.items():
+        fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
+        for ax, (key, title) in zip(axes, panels):
+            for label, log in runs:
+                if key in log and np.isfinite(log[key]).any():
+                    mask = np.isfinite(log[key])
+                    ax.plot(log["env_steps"][mask], log[key][mask], label=label, marker="." if key.startswith("eval") else None)
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel("env steps")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(output_dir / filename, dpi=110)
+        plt.close(fig)
+        written.append(output_dir / filename)
+    return written
+
+
+def report(cfg: ReportConfig) -> dict:
+    run_dirs = sorted({Path(p) for pattern in cfg.runs for p in glob.glob(str(pattern)) if (Path(p) / "eval_final.json").exists()})
+    if not run_dirs:
+        raise FileNotFoundError(f"no finished runs (with eval_final.json) match {cfg.runs}")
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    rows = [summarize_run(d) for d in run_dirs]
+    tables = markdown_tables(rows)
+    (cfg.output_dir / "report.md").write_text(tables)
+    (cfg.output_dir / "report.json").write_text(json.dumps(rows, indent=2))
+    plots = plot_runs([(f"{r['method']} sigma={r['sigma']:g}", read_log(Path(r["run"]))) for r in rows], cfg.output_dir)
+    return {"rows": rows, "tables": tables, "plots": plots}
+
+
+def main() -> None:
+    cfg = draccus.parse(ReportConfig)
+    result = report(cfg)
+    print(result["tables"])
+    print(f"bcrl-report: {len(result['rows'])} runs -> {cfg.output_dir / 'report.md'}, report.json, "
+          + ", ".join(p.name for p in result["plots"]))
+
+
+if __name__ == "__main__":
+    main()

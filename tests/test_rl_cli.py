@@ -1,0 +1,90 @@
+"""bcrl-finetune through its console script: a killed run resumes with the same theta_t and step count, and a
+BC+RL smoke run on Lift from a lerobot-train checkpoint ends in a checkpoint lerobot-eval evaluates."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from policy_fixtures import lowdim_dataset_root  # noqa: F401
+
+from lerobot_bcrl.rl.schedule import ScheduleConfig, theta_at
+
+BIN = Path(sys.executable).parent
+
+
+def run_cli(name: str, *args: str, timeout: int = 150) -> str:
+    result = subprocess.run([str(BIN / name), *args], capture_output=True, text=True, timeout=timeout,
+                            env=os.environ.copy())
+    assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
+    return result.stdout + result.stderr
+
+
+def finetune_args(dataset_root: Path, output_dir: Path, total_env_steps: int, *extra: str) -> list[str]:
+    return [
+        f"--dataset.repo_id=local/{dataset_root.name}", f"--dataset.root={dataset_root}",
+        "--env.type=bcrl_lift", "--env.episode_length=40", f"--total_env_steps={total_env_steps}",
+        "--rollout.n_workers=0", "--rollout.envs_per_worker=2", "--rollout.steps_per_env=64",
+        "--ppo.minibatch_size=64", "--bc_batch_size=32", "--save_freq=128", "--eval_freq=0",
+        "--final_eval_episodes=1", "--tensorboard=false", f"--output_dir={output_dir}", *extra,
+    ]
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, tmp_path):
+    schedule = ["--schedule.type=three_phase", "--schedule.alpha=4", "--schedule.beta=10", "--schedule.phi=40"]
+    args = finetune_args(lowdim_dataset_root, tmp_path / "run", 512, "--policy.type=bcrl",
+                         "--policy.push_to_hub=false", *schedule)
+    process = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, env=os.environ.copy())
+    last = tmp_path / "run" / "checkpoints" / "last"
+    deadline = time.time() + 120
+    while not last.exists() and process.poll() is None and time.time() < deadline:
+        time.sleep(0.1)
+    process.send_signal(signal.SIGKILL)  # kill it right after its first checkpoint
+    process.wait()
+    killed_at = json.loads((last / "training_state" / "training_step.json").read_text())
+    assert killed_at["env_steps"] < 512
+
+    output = run_cli("bcrl-finetune", *args, "--resume=true")
+    final = json.loads((last / "training_state" / "training_step.json").read_text())
+    # 128 env steps per iteration, 4 epochs x 2 minibatches: 8 optimisation steps each, whatever the kill.
+    assert final["env_steps"] == 512 and final["optim_step"] == 32 and final["ppo_iteration"] == 4
+    cfg = ScheduleConfig(type="three_phase", alpha=4, beta=10.0, phi=40)
+    assert final["theta"] == pytest.approx(theta_at(cfg, 32))
+    rows = list(csv.DictReader((tmp_path / "run" / "logs.csv").open()))
+    assert [int(r["env_steps"]) for r in rows] == [128, 256, 384, 512]  # no duplicate rows from the killed run
+    first_resumed = rows[killed_at["env_steps"] // 128]
+    assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
+    assert "512 env steps" in output
+
+
+@pytest.mark.slow
+def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root, tmp_path):
+    run_cli("lerobot-train", "--policy.type=bcrl", f"--dataset.repo_id=local/{lowdim_dataset_root.name}",
+            f"--dataset.root={lowdim_dataset_root}", "--policy.push_to_hub=false", "--steps=2", "--batch_size=8",
+            f"--output_dir={tmp_path / 'bc'}", "--num_workers=0", "--policy.device=cpu", "--save_freq=2")
+    bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
+    output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}",
+                     *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256))
+    assert "bcrl-finetune (BC+RL)" in output
+    result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
+    assert result["method"] == "BC+RL" and result["env_steps"] == 256 and 0 < result["theta"] < 1
+    rows = list(csv.DictReader((tmp_path / "bcrl" / "logs.csv").open()))
+    assert float(rows[-1]["bc_loss"]) > 0 and rows[-1]["approx_kl"] != ""  # both terms were computed
+    pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
+    for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
+        assert (pretrained / name).exists(), name
+    assert (pretrained.parent / "training_state" / "optimizer_state.safetensors").exists()
+    eval_output = run_cli("lerobot-eval", f"--policy.path={pretrained}", "--env.type=bcrl_lift",
+                          "--env.obs_type=agent_pos", "--env.episode_length=8", "--eval.n_episodes=1",
+                          "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",
+                          f"--output_dir={tmp_path / 'eval'}")
+    assert "pc_success" in eval_output
