@@ -158,3 +158,12 @@ def log_policy_step(actions, values) -> None:
     for slot, action, value in zip(_ROLLOUT_SLOTS, actions, values):
         if slot.logger is not None:
             slot.logger.log_policy_outputs(slot.frame_index, action, value)
+
+
+def annotate_rollouts(values: dict[str, float]) -> None:
+    """Log run-level numbers (theta_t, env steps) at the current frame of every active rollout logger."""
+    for slot in _ROLLOUT_SLOTS:
+        if slot.logger is not None and values:
+            slot.logger.set_time(slot.frame_index)
+            for name, value in values.items():
+                slot.logger.stream.log(f"signals/{name}", slot.logger.rr.Scalars([float(value)]))

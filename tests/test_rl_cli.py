@@ -73,8 +73,15 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
             f"--output_dir={tmp_path / 'bc'}", "--num_workers=0", "--policy.device=cpu", "--save_freq=2")
     bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}",
-                     *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256))
+                     *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256), "--eval_rerun=true")
     assert "bcrl-finetune (BC+RL)" in output
+    # the evaluation episode in rerun: what happened, the policy's predictions and values, and theta_t
+    from lerobot_bcrl.rerun_log import read_entity_rows
+
+    (rrd,) = (tmp_path / "bcrl" / "eval_rrd").glob("*.rrd")
+    rows = read_entity_rows(rrd)
+    assert rows["/state"] == 40 and rows["/policy/action"] == 40 and rows["/signals/value"] == 40
+    assert rows["/signals/theta_t"] == 1 and rows["/signals/env_steps"] == 1
     result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
     assert result["method"] == "BC+RL" and result["env_steps"] == 256 and 0 < result["theta"] < 1
     rows = list(csv.DictReader((tmp_path / "bcrl" / "logs.csv").open()))

@@ -89,10 +89,22 @@ def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
     bc_grads = _grads(policy)
 
     policy.zero_grad()
-    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward)
+    paper = PPOConfig(value_loss_always=False)  # the paper's formula: theta = 1 is BC and nothing else
+    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=paper, bc_forward=policy.forward)
     loss.backward()
     for name, grad in _grads(policy).items():
         torch.testing.assert_close(grad, bc_grads[name], msg=name)
+
+    # Our default also fits the critic while theta = 1: the action heads still get exactly BC's gradients,
+    # and the value head gets the value loss's.
+    policy.zero_grad()
+    bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward)[0].backward()
+    with_critic = _grads(policy)
+    for name in with_critic:
+        if any(head in name for head in ("delta_pos_head", "delta_quat_head", "gripper_head", "log_std")):
+            torch.testing.assert_close(with_critic[name], bc_grads[name], msg=name)
+    value_grads = [g for n, g in with_critic.items() if "value_head" in n]
+    assert value_grads and all(g.abs().sum() > 0 for g in value_grads)
 
     policy.zero_grad()
     bcrl_loss(agent, minibatch, demo_batch, theta=0.5, cfg=PPOConfig(), bc_forward=policy.forward)[0].backward()

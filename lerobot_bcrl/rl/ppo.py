@@ -61,7 +61,15 @@ class PPOConfig:
     # are always normalised by the policy's preprocessor with the dataset stats saved beside the weights.
     normalize_rewards: bool = True
     target_kl: float | None = None  # stop an iteration's epochs early when approx_kl exceeds it
-    reset_log_std: float | None = -2.0  # set the policy's learned log-std at the start (BC never trains it)
+    # Set the policy's learned log-std at the start (BC never trains it), for delta_pos / scale and for the
+    # quaternion: the demos barely rotate, and quaternion noise of the position's size turns the wrist
+    # ~15 degrees a step (clamped to pi/40), which the BC policy never saw.
+    reset_log_std: float | None = -2.0
+    reset_log_std_rotation: float | None = -5.0
+    # True: `theta * L_BC + (1 - theta) * c1 * L_CLIP + c2 * L_VF`, the critic trained from the first update
+    # (during alpha too). False: the paper's `theta * L_BC + (1 - theta) * (c1 * L_CLIP + c2 * L_VF)`, in
+    # which the value head gets no gradient while theta = 1 and PPO starts on an untrained critic.
+    value_loss_always: bool = True
 
 
 @dataclass
@@ -90,6 +98,9 @@ class FinetuneConfig:
     eval_episodes: int = 10
     final_eval_episodes: int = 50
     save_freq: int = 50_000  # env steps between checkpoints (and one at the end)
+    # Log every evaluation episode to <output_dir>/eval_rrd/*.rrd: what happened, the policy's predicted
+    # actions and values, and theta_t and the env step count at that evaluation (open with `rerun`).
+    eval_rerun: bool = False
     tensorboard: bool = True  # also log to <output_dir>/tensorboard if tensorboard is installed
     wandb: bool = False
 
@@ -192,11 +203,16 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     if cfg.normalize_advantages and advantages.numel() > 1:
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     ppo = ppo_loss_terms(new_log_prob, minibatch["log_probs"], advantages, new_value, minibatch["returns"], cfg.clip_eps)
-    ppo_loss = cfg.c1 * ppo["policy_loss"] + cfg.c2 * ppo["value_loss"] - cfg.entropy_coef * entropy.mean()
+    value_loss = cfg.c2 * ppo["value_loss"]
+    ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
     bc_loss, bc_metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
 
-    loss = theta * bc_loss + (1 - theta) * ppo_loss
+    if cfg.value_loss_always:
+        loss = theta * bc_loss + (1 - theta) * ppo_loss + value_loss
+    else:
+        ppo_loss = ppo_loss + value_loss
+        loss = theta * bc_loss + (1 - theta) * ppo_loss
 
     metrics = {name: float(value.detach()) for name, value in ppo.items()}
     metrics.update(bc_metrics, entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()),
@@ -430,9 +446,11 @@ def env_gym_kwargs(cfg: FinetuneConfig, uses_images: bool) -> dict:
 
 def worker_kwargs(cfg: FinetuneConfig, policy_dir: Path, gym_kwargs: dict, seed: int) -> list[dict]:
     n = max(cfg.rollout.n_workers, 1)
+    eval_gym_kwargs = {**gym_kwargs, "rerun_dir": str(cfg.output_dir / "eval_rrd")} if cfg.eval_rerun else gym_kwargs
     return [
         {
             "make_env": partial(make_gym_env, cfg.env.gym_id, gym_kwargs),
+            "make_eval_env": partial(make_gym_env, cfg.env.gym_id, eval_gym_kwargs),
             "make_agent": partial(BCRLAgent.from_pretrained, policy_dir),
             "n_envs": cfg.rollout.envs_per_worker,
             "seed": seed + 7919 * i,
@@ -479,9 +497,15 @@ def finetune(cfg: FinetuneConfig) -> dict:
         if reward_scaler and training_step["reward_scaler"]:
             reward_scaler.load_state_dict(training_step["reward_scaler"])
         cfg.policy.pretrained_path = initial_policy_path  # the run's origin, for the method label
-    elif cfg.ppo.reset_log_std is not None and cfg.total_env_steps > 0:
-        with torch.no_grad():
-            policy.log_std.fill_(cfg.ppo.reset_log_std)
+    elif cfg.total_env_steps > 0:
+        with torch.no_grad():  # log_std covers [delta_pos / scale (3), quaternion (4)]
+            if cfg.ppo.reset_log_std is not None:
+                policy.log_std[:3] = cfg.ppo.reset_log_std
+            rotation_log_std = cfg.ppo.reset_log_std_rotation
+            if rotation_log_std is None:
+                rotation_log_std = cfg.ppo.reset_log_std
+            if rotation_log_std is not None:
+                policy.log_std[3:] = rotation_log_std
 
     # The workers load config and processors once from disk; weights travel with every rollout request.
     policy_dir = cfg.output_dir / ROLLOUT_POLICY_DIR
@@ -498,7 +522,8 @@ def finetune(cfg: FinetuneConfig) -> dict:
 
     def evaluate(n_episodes: int) -> tuple[dict, list[EpisodeStats]]:
         seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
-        episodes = workers.evaluate(policy.state_dict(), seeds)
+        annotations = {"theta_t": schedule_state.theta(cfg.schedule), "env_steps": env_steps}
+        episodes = workers.evaluate(policy.state_dict(), seeds, annotations)
         return summarize_episodes(episodes, "eval"), episodes
 
     start_time, last_eval, last_save = time.time(), env_steps, env_steps

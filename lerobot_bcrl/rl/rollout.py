@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from lerobot_bcrl import rerun_log
 from lerobot_bcrl.rl.agent import Agent, flatten_observation
 
 
@@ -69,11 +70,11 @@ class RolloutWorker:
     """
 
     def __init__(self, make_env: Callable[[], gym.Env], make_agent: Callable[[], Agent], n_envs: int,
-                 seed: int):
+                 seed: int, make_eval_env: Callable[[], gym.Env] | None = None):
         self.agent = make_agent()
         torch.manual_seed(seed)  # after the agent is built: its initialisation may seed torch itself
         self.envs = [make_env() for _ in range(n_envs)]
-        self.make_env = make_env
+        self.make_eval_env = make_eval_env or make_env  # e.g. one that logs its episodes to rerun
         self.eval_env: gym.Env | None = None
         self.seed_rng = np.random.default_rng(seed)
         self.observations, self.running = [], []
@@ -140,15 +141,18 @@ class RolloutWorker:
         )
 
     @torch.no_grad()
-    def evaluate(self, state_dict: dict[str, torch.Tensor] | None, seeds: list[int]) -> list[EpisodeStats]:
-        """Deterministic (mean, argmax) episodes from the given seeds on a separate env."""
+    def evaluate(self, state_dict: dict[str, torch.Tensor] | None, seeds: list[int],
+                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]:
+        """Deterministic (mean, argmax) episodes from the given seeds on a separate env; `annotations`
+        (e.g. theta_t, env steps) go beside them into rerun when the eval env logs there."""
         self._load(state_dict)
         self.agent.module.eval()
         if self.eval_env is None:
-            self.eval_env = self.make_env()
+            self.eval_env = self.make_eval_env()
         results = []
         for episode_seed in seeds:
             obs, _ = self.eval_env.reset(seed=int(episode_seed))
+            rerun_log.annotate_rollouts(annotations or {})
             stats = EpisodeStats(0.0, 0, False, None, seed=int(episode_seed))
             done = False
             while not done:
@@ -173,7 +177,8 @@ class RolloutWorkers(Protocol):
     """The interface the algorithm sees. Swap the implementation (process pool, Ray) without touching PPO."""
 
     def collect(self, state_dict: dict[str, torch.Tensor], steps_per_env: int) -> Trajectories: ...
-    def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int]) -> list[EpisodeStats]: ...
+    def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int],
+                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]: ...
     def close(self) -> None: ...
 
 
@@ -190,9 +195,9 @@ class InlineWorkers:
     def collect(self, state_dict, steps_per_env):
         return Trajectories.concatenate([w.collect(state_dict, steps_per_env) for w in self.workers])
 
-    def evaluate(self, state_dict, seeds):
+    def evaluate(self, state_dict, seeds, annotations=None):
         parts = split_evenly(list(seeds), len(self.workers))
-        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part)]
+        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part, annotations)]
 
     def close(self):
         for w in self.workers:
