@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
@@ -72,7 +73,12 @@ class RolloutWorker:
     def __init__(self, make_env: Callable[[], gym.Env], make_agent: Callable[[], Agent], n_envs: int,
                  seed: int, make_eval_env: Callable[[], gym.Env] | None = None):
         self.agent = make_agent()
+        # Each worker owns its torch RNG stream (swapped in around collect/evaluate), so several workers in
+        # one process draw the same actions as the same workers in separate processes.
+        outer_rng = torch.get_rng_state()
         torch.manual_seed(seed)  # after the agent is built: its initialisation may seed torch itself
+        self._torch_rng = torch.get_rng_state()
+        torch.set_rng_state(outer_rng)
         self.envs = [make_env() for _ in range(n_envs)]
         self.make_eval_env = make_eval_env or make_env  # e.g. one that logs its episodes to rerun
         self.eval_env: gym.Env | None = None
@@ -92,8 +98,21 @@ class RolloutWorker:
         if state_dict is not None:
             self.agent.module.load_state_dict(state_dict)
 
-    @torch.no_grad()
+    @contextlib.contextmanager
+    def _own_rng(self):
+        outer_rng = torch.get_rng_state()
+        torch.set_rng_state(self._torch_rng)
+        try:
+            yield
+        finally:
+            self._torch_rng = torch.get_rng_state()
+            torch.set_rng_state(outer_rng)
+
     def collect(self, state_dict: dict[str, torch.Tensor] | None, steps_per_env: int) -> Trajectories:
+        with self._own_rng(), torch.no_grad():
+            return self._collect(state_dict, steps_per_env)
+
+    def _collect(self, state_dict: dict[str, torch.Tensor] | None, steps_per_env: int) -> Trajectories:
         self._load(state_dict)
         self.agent.module.eval()
         n_envs = len(self.envs)
@@ -245,9 +264,11 @@ class ProcessWorkers:
         parts = self._call_all("collect", [(state_dict, steps_per_env)] * len(self.connections))
         return Trajectories.concatenate(parts)
 
-    def evaluate(self, state_dict, seeds):
+    def evaluate(self, state_dict, seeds, annotations=None):
         state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
-        parts = self._call_all("evaluate", [(state_dict, part) for part in split_evenly(list(seeds), len(self.connections))])
+        parts = self._call_all(
+            "evaluate", [(state_dict, part, annotations) for part in split_evenly(list(seeds), len(self.connections))]
+        )
         return [e for part in parts for e in part]
 
     def close(self):
