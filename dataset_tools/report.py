@@ -16,6 +16,8 @@ from pathlib import Path
 import draccus
 import numpy as np
 
+from lerobot_bcrl.stats import mean_ci95
+
 METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
 
 
@@ -23,13 +25,6 @@ METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
 class ReportConfig:
     runs: list[str] = field(default_factory=lambda: ["outputs/rl/*"])  # run dirs or globs (with eval_final.json)
     output_dir: Path = Path("outputs/report")
-
-
-def mean_ci95(values: list[float]) -> tuple[float, float]:
-    array = np.asarray(values, dtype=float)
-    if len(array) < 2:
-        return float(array.mean()) if len(array) else float("nan"), float("nan")
-    return float(array.mean()), float(1.96 * array.std(ddof=1) / math.sqrt(len(array)))
 
 
 def wilson_ci95(successes: int, n: int) -> tuple[float, float]:

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
-import numpy as np
 import pandas as pd
 
 from dataset_tools.writer import default_root, read_bcrl_meta
+from lerobot_bcrl.stats import mean_ci95
 
 
 def load_episode_table(root: Path) -> pd.DataFrame:
@@ -22,13 +22,6 @@ def load_episode_table(root: Path) -> pd.DataFrame:
         raise FileNotFoundError(f"{root}: no meta/episodes/*.parquet; is this a LeRobotDataset v3 folder?")
     table = pd.concat([pd.read_parquet(p) for p in paths], ignore_index=True)
     return table[[c for c in table.columns if not c.startswith(("stats/", "videos/", "data/", "meta/"))]]
-
-
-def _mean_ci95(values: np.ndarray) -> tuple[float, float]:
-    values = np.asarray(values, dtype=np.float64)
-    if len(values) < 2:
-        return float(values.mean()) if len(values) else float("nan"), float("nan")
-    return float(values.mean()), float(1.96 * values.std(ddof=1) / np.sqrt(len(values)))
 
 
 def summarize(root: Path) -> dict:
@@ -44,7 +37,7 @@ def summarize(root: Path) -> dict:
         "features": sorted(info["features"]),
     }
     if "episode_return" in episodes:
-        mean, ci = _mean_ci95(episodes["episode_return"])
+        mean, ci = mean_ci95(episodes["episode_return"])
         lifted = episodes.loc[episodes["steps_to_lift"] >= 0, "steps_to_lift"]
         summary.update(
             success_rate=float(episodes["success"].mean()),

@@ -3,13 +3,12 @@ deltas match the ground truth, the dataset loads in LeRobot, and bad input fails
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dataset_tools.convert.align import align, interpolate_poses
+from dataset_tools.convert.align import interpolate_poses
 from dataset_tools.convert.cli import ConvertConfig, convert, convert_one
 from dataset_tools.convert.hdf5 import read_demo
 from dataset_tools.convert.ros_bag import read_bag
@@ -33,7 +32,6 @@ URDF = Path("/work/shared/robots/sawyer/sawyer.urdf")
 POS_TOL_M = 1e-3  # the bound per step
 ROT_TOL_RAD = 0.01
 
-
 @pytest.fixture(scope="module")
 def demo_and_bags(tmp_path_factory):
     out = tmp_path_factory.mktemp("bags")
@@ -43,7 +41,6 @@ def demo_and_bags(tmp_path_factory):
     ros2 = write_bag(out / "ep0_mcap", demo, cfg, ros1=False, seed=3)
     return demo, cfg, ros1, ros2
 
-
 def convert_cfg(tmp_path, input_path, **kw) -> ConvertConfig:
     base = dict(
         input=input_path, root=tmp_path / "ds", urdf=URDF, image_size=32, video=False,
@@ -52,16 +49,13 @@ def convert_cfg(tmp_path, input_path, **kw) -> ConvertConfig:
     base.update(kw)
     return ConvertConfig(**base)
 
-
 def kinematics_factory():
     return UrdfKinematics(URDF, tool_offset_pos_m=GRIP_SITE_IN_RIGHT_HAND_POS_M, tool_offset_quat_xyzw=GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW)
-
 
 def ground_truth_actions(demo, grid_time_s):
     gt = PoseStream("gt", demo.time_s, demo.eef_pos_base_m, demo.eef_quat_base_xyzw)
     pos, quat = interpolate_poses(gt, grid_time_s)  # 500 Hz truth: interpolation error is negligible
     return pos, quat
-
 
 def delta_errors(action, gt_pos, gt_quat):
     n = len(action)
@@ -70,7 +64,6 @@ def delta_errors(action, gt_pos, gt_quat):
     pos_err = np.linalg.norm(action[:, :3] - gt_dpos, axis=1)
     rot_err = G.quat_angle(G.quat_multiply(action[:, 3:7], G.quat_conjugate(gt_dquat)))
     return pos_err, rot_err
-
 
 @pytest.mark.parametrize("which,use_pose_topic", [("ros1", False), ("ros2", False), ("ros1", True)])
 def test_deltas_match_ground_truth(demo_and_bags, tmp_path, which, use_pose_topic):
@@ -96,7 +89,6 @@ def test_deltas_match_ground_truth(demo_and_bags, tmp_path, which, use_pose_topi
     assert 0.0 <= grasp_s - first_close_s < 0.5
     assert report.camera_frames_repeated["agentview"] > 0  # dropped camera frames were filled in
 
-
 def test_resampling_to_another_fps_keeps_deltas_consistent(demo_and_bags, tmp_path):
     demo, _, ros1, _ = demo_and_bags
     cfg = convert_cfg(tmp_path, ros1, fps=20, use_pose_topic=False)
@@ -105,7 +97,6 @@ def test_resampling_to_another_fps_keeps_deltas_consistent(demo_and_bags, tmp_pa
     grid = report.start_s + np.arange(report.n_frames) / 20 + (streams.start_time_ns - BAG_START_NS) / 1e9
     pos_err, rot_err = delta_errors(frames[F.ACTION_KEY], *ground_truth_actions(demo, grid))
     assert pos_err.max() < POS_TOL_M and rot_err.max() < ROT_TOL_RAD
-
 
 def test_end_to_end_dataset_loads_with_same_features_as_simulated(demo_and_bags, tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -130,7 +121,6 @@ def test_end_to_end_dataset_loads_with_same_features_as_simulated(demo_and_bags,
     assert bool(ds[len(ds) - 1][F.AUX_GRASP_VALID_KEY])
     episodes = LeRobotDatasetMetadata("local/towel_demos", root=root).episodes
     assert "n_clamped_actions" in episodes.column_names
-
 
 def test_hdf5_robomimic_demo(demo_and_bags, tmp_path):
     import h5py
@@ -157,13 +147,11 @@ def test_hdf5_robomimic_demo(demo_and_bags, tmp_path):
     root, _ = convert(convert_cfg(tmp_path, path, fps=20))
     assert (root / "meta" / "info.json").exists()
 
-
 # -- bad input -----------------------------------------------------------------------------------------
 def rewrite(demo, cfg, path: Path, mutate, empty_topics=None) -> Path:
     factory = _MessageFactory(ros1=True)
     messages = mutate(bag_messages(demo, cfg, factory, seed=3), factory)
     return write_messages(path, messages, factory, empty_topics)
-
 
 def assert_fails_cleanly(cfg: ConvertConfig, *fragments: str):
     with pytest.raises(ConversionError) as info:
@@ -172,7 +160,6 @@ def assert_fails_cleanly(cfg: ConvertConfig, *fragments: str):
         assert fragment in str(info.value), str(info.value)
     assert not cfg.root.exists()
     assert not list(cfg.root.parent.glob(f".{cfg.root.name}.incomplete-*"))
-
 
 def test_truncated_bag(demo_and_bags, tmp_path):
     _, _, ros1, ros2 = demo_and_bags
@@ -186,12 +173,10 @@ def test_truncated_bag(demo_and_bags, tmp_path):
     (bad2 / mcap.name).write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 3])
     assert_fails_cleanly(convert_cfg(tmp_path, bad2), "bad_mcap")
 
-
 def test_missing_topic(demo_and_bags, tmp_path):
     _, _, ros1, _ = demo_and_bags
     cfg = convert_cfg(tmp_path, ros1, topics=TopicMap(joint_states="/nope/joint_states"))
     assert_fails_cleanly(cfg, str(ros1), "/nope/joint_states", "not in the bag")
-
 
 def test_zero_norm_quaternion(demo_and_bags, tmp_path):
     demo, cfg, _, _ = demo_and_bags
@@ -207,13 +192,11 @@ def test_zero_norm_quaternion(demo_and_bags, tmp_path):
     bad = rewrite(demo, cfg, tmp_path / "zero_quat.bag", zero_quat)
     assert_fails_cleanly(convert_cfg(tmp_path, bad), "zero_quat.bag", cfg.topics.eef_pose, "zero or non-finite norm", "t=")
 
-
 def test_joint_names_not_in_urdf(demo_and_bags, tmp_path):
     _, _, ros1, _ = demo_and_bags
     names = [f"right_j{i}" for i in range(6)] + ["right_gripper_l_finger_joint"]  # in the bag, not in the URDF
     cfg = convert_cfg(tmp_path, ros1, use_pose_topic=False, topics=TopicMap(joint_names=names))
     assert_fails_cleanly(cfg, str(ros1), "sawyer.urdf", "right_gripper_l_finger_joint", "not in the URDF")
-
 
 def test_non_monotonic_timestamps(demo_and_bags, tmp_path):
     demo, cfg, _, _ = demo_and_bags
@@ -227,7 +210,6 @@ def test_non_monotonic_timestamps(demo_and_bags, tmp_path):
     bad = rewrite(demo, cfg, tmp_path / "backwards.bag", swap)
     assert_fails_cleanly(convert_cfg(tmp_path, bad), "backwards.bag", cfg.topics.joint_states, "non-monotonic", "message 51")
 
-
 def test_camera_without_frames(demo_and_bags, tmp_path):
     demo, cfg, _, _ = demo_and_bags
     bad = rewrite(
@@ -235,7 +217,6 @@ def test_camera_without_frames(demo_and_bags, tmp_path):
         empty_topics={cfg.topics.camera: "sensor_msgs/msg/Image"},
     )  # fmt: skip
     assert_fails_cleanly(convert_cfg(tmp_path, bad), "blind.bag", "camera 'agentview'", "no frames")
-
 
 def test_too_short_episode_and_skip_option(demo_and_bags, tmp_path):
     demo, cfg, ros1, _ = demo_and_bags

@@ -76,7 +76,7 @@ def test_actions_move_the_end_effector_in_the_commanded_direction(lowdim_env):
     from lerobot_bcrl import geometry as G
 
     obs, _ = lowdim_env.reset(seed=0)
-    start_pos, start_quat = obs["agent_pos"][:3].copy(), obs["agent_pos"][3:7].copy()
+    start_pos = obs["agent_pos"][:3].copy()
     for _ in range(10):
         obs, *_ = lowdim_env.step(np.array([0, 0, 0.01, 0, 0, 0, 1.0, -1.0]))  # 1 cm up per step
     moved = obs["agent_pos"][:3] - start_pos

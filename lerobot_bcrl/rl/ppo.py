@@ -26,6 +26,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
+from lerobot_bcrl.stats import mean_ci95
 from lerobot_bcrl.rl.agent import Agent, BCRLAgent
 from lerobot_bcrl.rl.rollout import EpisodeStats, RolloutWorkers, Trajectories, make_gym_env, make_workers
 from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
@@ -380,12 +381,11 @@ class RunLogger:
 def summarize_episodes(episodes: list[EpisodeStats], prefix: str) -> dict[str, float]:
     if not episodes:
         return {}
-    returns = np.array([e.episode_return for e in episodes])
+    mean_return, ci95 = mean_ci95(e.episode_return for e in episodes)
     lifts = [e.steps_to_lift for e in episodes if e.steps_to_lift is not None]
-    ci95 = 1.96 * returns.std(ddof=1) / math.sqrt(len(returns)) if len(returns) > 1 else float("nan")
     return {
-        f"{prefix}_return": float(returns.mean()),
-        f"{prefix}_return_ci95": float(ci95),
+        f"{prefix}_return": mean_return,
+        f"{prefix}_return_ci95": ci95,
         f"{prefix}_success": float(np.mean([e.success for e in episodes])),
         f"{prefix}_steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"),
         f"{prefix}_episodes": len(episodes),
