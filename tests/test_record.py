@@ -13,6 +13,7 @@ from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from dataset_tools.writer import BadEpisodeError, check_episode
 from lerobot_bcrl import features as F
 from lerobot_bcrl.envs.lift import LiftEnv
+from policy_fixtures import lowdim_dataset_root  # noqa: F401  (a tiny recorded dataset)
 
 
 def _cfg(root, **kw):
@@ -211,3 +212,29 @@ def test_bcrl_record_cli_and_summary(tmp_path):
         subprocess.run([str(bin_dir / "bcrl-summary"), f"--root={root}", "--json=true"], capture_output=True, text=True, check=True).stdout
     )
     assert summary["episodes"] == 2 and summary["frames"] == 40 and 0.0 <= summary["success_rate"] <= 1.0
+
+
+def test_any_lerobot_policy_checkpoint_can_be_the_expert(lowdim_dataset_root, tmp_path):
+    """`--expert=<pretrained_model>`: a policy's 8-D actions, in controller units, plus the demonstrator's noise."""
+    from policy_fixtures import load_dataset, make_bcrl_policy
+
+    policy, preprocessor, postprocessor = make_bcrl_policy(load_dataset(lowdim_dataset_root))
+    checkpoint = tmp_path / "pretrained_model"
+    policy.save_pretrained(checkpoint)
+    preprocessor.save_pretrained(checkpoint)
+    postprocessor.save_pretrained(checkpoint)
+    cfg = _cfg(tmp_path / "policy_demos", images=False, n_episodes=1, episode_length=12, sigma=0.0, expert=str(checkpoint))
+    rec.record(cfg)
+    recorded = torch.stack([x[F.ACTION_KEY] for x in _load(cfg.root)]).numpy()
+    # the recorded actions are the policy's own (no noise at sigma 0), replayed through the same env
+    env = LiftEnv(obs_type="agent_pos", horizon=12)
+    obs, _ = env.reset(seed=cfg.seed)
+    expert = rec.make_expert(cfg)
+    expert.reset()
+    from lerobot_bcrl.envs.controller import controller_to_delta_action
+
+    for t in range(12):
+        action, _ = controller_to_delta_action(expert.act(obs))
+        np.testing.assert_allclose(recorded[t], action.astype(np.float32), atol=1e-6)
+        obs, *_ = env.step(action)
+    env.close()
