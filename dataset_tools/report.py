@@ -87,7 +87,7 @@ def markdown_tables(rows: list[dict]) -> str:
     for r in sorted(rows, key=lambda r: (r["sigma"], r["method"])):
         low, high = r["success_ci95"]
         lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {r['episodes']} | {fmt(r, 'return')} |"
-                     f" {r['recovered_pct']:.0f} % | {100 * r['success']:.0f} % ({100 * low:.0f}-{100 * high:.0f}) |"
+                     f" {r['recovered_pct']:.0f} % | {100 * r['success']:.0f} % ({max(0.0, 100 * low):.0f}-{min(100.0, 100 * high):.0f}) |"
                      f" {r['steps_to_lift']:.1f} | `{r['run']}` |")
     return "\n".join(lines) + "\n"
 
