@@ -59,3 +59,11 @@ def whole_dataset_batch(dataset) -> dict:
     import torch
 
     return next(iter(torch.utils.data.DataLoader(dataset, batch_size=len(dataset), shuffle=False)))
+
+
+def save_untrained_checkpoint(dataset_root: Path, checkpoint: Path):
+    """A fresh `bcrl` policy for the dataset, saved in LeRobot's pretrained_model layout; returns the trio."""
+    policy, preprocessor, postprocessor = make_bcrl_policy(load_dataset(dataset_root))
+    for part in (policy, preprocessor, postprocessor):
+        part.save_pretrained(checkpoint)
+    return policy, preprocessor, postprocessor

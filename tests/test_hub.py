@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from dataset_tools.local_hub import LocalHub
-from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, record_tiny_dataset  # noqa: F401
+from policy_fixtures import load_dataset, lowdim_dataset_root, record_tiny_dataset, save_untrained_checkpoint  # noqa: F401
 
 TOKEN = "hf_test_token"
 BIN = Path(sys.executable).parent
@@ -162,10 +162,8 @@ def test_policy_push_pull_and_safety_checks(hub, api, lowdim_dataset_root, tmp_p
     from lerobot.policies.factory import get_policy_class
 
     dataset = load_dataset(lowdim_dataset_root)
-    policy, preprocessor, _ = make_bcrl_policy(dataset)
     checkpoint = tmp_path / "pretrained_model"
-    policy.save_pretrained(checkpoint)
-    preprocessor.save_pretrained(checkpoint)
+    policy, preprocessor, _ = save_untrained_checkpoint(lowdim_dataset_root, checkpoint)
     run_hub(hub, "push", "--kind=policy", "--repo_id=lab/bcrl", f"--root={checkpoint}", "--private=true")
     pulled = tmp_path / "pulled_policy"
     run_hub(hub, "pull", "--kind=policy", "--repo_id=lab/bcrl", f"--root={pulled}")

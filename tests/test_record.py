@@ -216,13 +216,10 @@ def test_bcrl_record_cli_and_summary(tmp_path):
 
 def test_any_lerobot_policy_checkpoint_can_be_the_expert(lowdim_dataset_root, tmp_path):
     """`--expert=<pretrained_model>`: a policy's 8-D actions, in controller units, plus the demonstrator's noise."""
-    from policy_fixtures import load_dataset, make_bcrl_policy
+    from policy_fixtures import save_untrained_checkpoint
 
-    policy, preprocessor, postprocessor = make_bcrl_policy(load_dataset(lowdim_dataset_root))
     checkpoint = tmp_path / "pretrained_model"
-    policy.save_pretrained(checkpoint)
-    preprocessor.save_pretrained(checkpoint)
-    postprocessor.save_pretrained(checkpoint)
+    save_untrained_checkpoint(lowdim_dataset_root, checkpoint)
     cfg = _cfg(tmp_path / "policy_demos", images=False, n_episodes=1, episode_length=12, sigma=0.0, expert=str(checkpoint))
     rec.record(cfg)
     recorded = torch.stack([x[F.ACTION_KEY] for x in _load(cfg.root)]).numpy()

@@ -52,13 +52,10 @@ def test_rollout_logger_records_policy_outputs(tmp_path):
 
 def test_lerobot_eval_rollouts_logged_with_policy_predictions(lowdim_dataset_root, tmp_path):
     """lerobot-eval, unmodified, with our env logging episodes and our policy logging its predictions."""
-    from policy_fixtures import load_dataset, make_bcrl_policy
+    from policy_fixtures import save_untrained_checkpoint
 
-    policy, preprocessor, postprocessor = make_bcrl_policy(load_dataset(lowdim_dataset_root))
     checkpoint = tmp_path / "pretrained_model"
-    policy.save_pretrained(checkpoint)
-    preprocessor.save_pretrained(checkpoint)
-    postprocessor.save_pretrained(checkpoint)
+    save_untrained_checkpoint(lowdim_dataset_root, checkpoint)
     rerun_dir = tmp_path / "rollouts"
     subprocess.run(
         [str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={checkpoint}", "--env.type=bcrl_lift",
