@@ -31,8 +31,8 @@ $BIN/bcrl-finetune --config_path=configs/bcrl_lift_lowdim.json --policy.path="$B
   --total_env_steps=0 --final_eval_episodes="$EVAL_EPISODES" --rollout.n_workers=2 --rollout.envs_per_worker=1 \
   --output_dir="$OUT/bc_only"
 $BIN/bcrl-finetune --config_path=configs/bcrl_lift_lowdim.json --policy.path="$BC_CKPT" $DATASET \
-  --total_env_steps="$RL_STEPS" --rollout.n_workers=2 --rollout.envs_per_worker=4 --schedule.beta=300 \
-  --schedule.phi=2000 --eval_freq=8192 --save_freq=8192 --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/bcrl"
+  --total_env_steps="$RL_STEPS" --rollout.n_workers=2 --rollout.envs_per_worker=4 --schedule.alpha=160 \
+  --schedule.beta=300 --schedule.phi=2000 --eval_freq=8192 --save_freq=8192 --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/bcrl"
 
 echo "== 4/5 evaluate the fine-tuned checkpoint with the unmodified lerobot-eval =="
 $BIN/lerobot-eval --policy.path="$OUT/bcrl/checkpoints/last/pretrained_model" --env.type=bcrl_lift \
