@@ -72,9 +72,6 @@ class EpisodeLogger:
             log("world/eef_path", rr.LineStrips3D([np.stack(self._eef_path)], colors=[[40, 120, 255]]))
             if action is not None:
                 log("world/action/delta_pos", rr.Arrows3D(origins=[eef_pos], vectors=[action[:3] * ARROW_SCALE], colors=[[255, 160, 0]]))
-            predicted = _np(frame.get("policy.action"))
-            if predicted is not None:
-                log("world/policy/delta_pos", rr.Arrows3D(origins=[eef_pos], vectors=[predicted[:3] * ARROW_SCALE], colors=[[0, 200, 120]]))
         env_state = _np(frame.get(F.ENV_STATE_KEY))
         if env_state is not None:
             log("world/cube", rr.Points3D([env_state[:3]], radii=0.02, colors=[[220, 30, 30]]))
@@ -100,7 +97,7 @@ class EpisodeLogger:
         predicted = _np(frame.get("policy.action"))
         if predicted is not None:
             log("policy/action", rr.Scalars(predicted))
-            if state is None and self._eef_path:
+            if self._eef_path:  # this frame's EEF, or the last one logged (predictions come before the step)
                 log("world/policy/delta_pos", rr.Arrows3D(origins=[self._eef_path[-1]], vectors=[predicted[:3] * ARROW_SCALE], colors=[[0, 200, 120]]))
 
     def close(self) -> None:
@@ -148,6 +145,21 @@ class RolloutSlot:
         self.logger: EpisodeLogger | None = None
         self.frame_index = 0
         _ROLLOUT_SLOTS.append(self)
+
+    @property
+    def position(self) -> int:
+        """Index in this process's envs, i.e. in the policy's batch."""
+        return _ROLLOUT_SLOTS.index(self)
+
+    def close_episode(self) -> None:
+        if self.logger is not None:
+            self.logger.close()
+            self.logger = None
+
+    def release(self) -> None:
+        self.close_episode()
+        if self in _ROLLOUT_SLOTS:
+            _ROLLOUT_SLOTS.remove(self)
 
 
 def log_policy_step(actions, values) -> None:

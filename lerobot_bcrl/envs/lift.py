@@ -164,9 +164,8 @@ class LiftEnv(gym.Env):
         from pathlib import Path
 
         slot = self._rerun_slot
-        if slot.logger is not None:
-            slot.logger.close()
-        path = Path(self._rerun_dir) / f"rollout_{os.getpid()}_{rerun_log._ROLLOUT_SLOTS.index(slot)}_{self._n_episodes:04d}.rrd"
+        slot.close_episode()
+        path = Path(self._rerun_dir) / f"rollout_{os.getpid()}_{slot.position}_{self._n_episodes:04d}.rrd"
         slot.logger = rerun_log.EpisodeLogger(f"bcrl_lift/{path.stem}", save_path=path, fps=self.metadata["render_fps"])
         slot.frame_index = 0
         self._n_episodes += 1
@@ -187,11 +186,8 @@ class LiftEnv(gym.Env):
         slot.frame_index += 1
 
     def close(self) -> None:
-        if self._rerun_slot is not None and self._rerun_slot.logger is not None:
-            self._rerun_slot.logger.close()
-            self._rerun_slot.logger = None
-        if self._rerun_slot in rerun_log._ROLLOUT_SLOTS:
-            rerun_log._ROLLOUT_SLOTS.remove(self._rerun_slot)
+        if self._rerun_slot is not None:
+            self._rerun_slot.release()
         for renderer in (self._camera, self._render_camera):
             if renderer is not None:
                 renderer.close()
