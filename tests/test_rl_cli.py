@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
@@ -41,7 +42,7 @@ def finetune_args(dataset_root: Path, output_dir: Path, total_env_steps: int, *e
 def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, tmp_path):
     schedule = ["--schedule.type=three_phase", "--schedule.alpha=4", "--schedule.beta=10", "--schedule.phi=40"]
     args = finetune_args(lowdim_dataset_root, tmp_path / "run", 512, "--policy.type=bcrl",
-                         "--policy.push_to_hub=false", *schedule)
+                         "--policy.push_to_hub=false", "--ppo.obs_normalization=running", *schedule)
     process = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, env=os.environ.copy())
     last = tmp_path / "run" / "checkpoints" / "last"
@@ -64,6 +65,23 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     first_resumed = rows[killed_at["env_steps"] // 128]
     assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
     assert "512 env steps" in output
+
+    # Running observation stats: the dataset's 100 frames as prior plus all 512 rollout observations, across
+    # the kill (the resumed run restored the count), and the saved preprocessor normalises with them.
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.configs.policies import PreTrainedConfig
+
+    from lerobot_bcrl.rl.normalization import find_normalizer
+
+    obs_stats = final["obs_stats"]["observation.state"]
+    assert obs_stats["count"] == pytest.approx(100 + 512)
+    pretrained = last / "pretrained_model"
+    preprocessor, _ = make_pre_post_processors(PreTrainedConfig.from_pretrained(pretrained), pretrained_path=str(pretrained))
+    saved = find_normalizer(preprocessor).state_dict()
+    np.testing.assert_allclose(saved["observation.state.mean"].numpy(), obs_stats["mean"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(saved["observation.state.std"].numpy(), np.sqrt(obs_stats["var"]), rtol=1e-5, atol=1e-6)
+    dataset_mean = json.loads((lowdim_dataset_root / "meta" / "stats.json").read_text())["observation.state"]["mean"]
+    assert not np.allclose(obs_stats["mean"], dataset_mean)  # the rollouts moved them
 
 
 @pytest.mark.slow

@@ -3,7 +3,6 @@ and the workers are reproducible: same seed and weights, same trajectories."""
 
 from __future__ import annotations
 
-from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -39,6 +38,12 @@ class MLPAgent:
         self.module = nn.ModuleDict({"actor": nn.Sequential(nn.Linear(1, 32), nn.Tanh(), nn.Linear(32, 1)),
                                      "critic": nn.Sequential(nn.Linear(1, 32), nn.Tanh(), nn.Linear(32, 1))})
         self.module.log_std = nn.Parameter(torch.zeros(1))
+
+    def state_dict(self):
+        return self.module.state_dict()
+
+    def load_state_dict(self, state):
+        self.module.load_state_dict(state)
 
     def observation_batch(self, raw_obs):
         return {"obs": torch.as_tensor(raw_obs["obs"], dtype=torch.float32)}

@@ -8,7 +8,6 @@ the BC term), log, evaluate, checkpoint in LeRobot's layout. The CLI is `bcrl-fi
 import csv
 import json
 import logging
-import math
 import os
 import shutil
 import time
@@ -28,6 +27,7 @@ from tqdm import tqdm
 from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
 from lerobot_bcrl.stats import mean_ci95
 from lerobot_bcrl.rl.agent import Agent, BCRLAgent
+from lerobot_bcrl.rl.normalization import OBS_NORMALIZATION_MODES, RewardScaler, RunningObservationStats, find_normalizer
 from lerobot_bcrl.rl.rollout import EpisodeStats, RolloutWorkers, Trajectories, make_gym_env, make_workers
 from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
 
@@ -58,9 +58,13 @@ class PPOConfig:
     learning_rate: float = 1e-4
     max_grad_norm: float = 0.5
     normalize_advantages: bool = True
-    # Rewards divided by a running std of the discounted return (CleanRL's NormalizeReward). Observations
-    # are always normalised by the policy's preprocessor with the dataset stats saved beside the weights.
+    # Rewards divided by a running std of the discounted return (CleanRL's NormalizeReward).
     normalize_rewards: bool = True
+    # Observations are normalised by the policy's preprocessor. "dataset": with the demonstrations' mean/std
+    # (what BC trained with; fixed). "running": the mean/std of the state features start there (weighted as
+    # the dataset's frame count) and follow every rollout (CleanRL's NormalizeObservation); checkpoints carry
+    # them, so lerobot-eval normalises as training did. No normalisation: --policy.normalization_mapping.
+    obs_normalization: str = "dataset"
     target_kl: float | None = None  # stop an iteration's epochs early when approx_kl exceeds it
     # Set the policy's learned log-std at the start (BC never trains it), for delta_pos / scale and for the
     # quaternion: the demos barely rotate, and quaternion noise of the position's size turns the wrist
@@ -166,36 +170,6 @@ def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
 
 
-class RewardScaler:
-    """Divides rewards by the running std of each env's discounted return (state saved with checkpoints)."""
-
-    def __init__(self, gamma: float, n_envs: int):
-        self.gamma = gamma
-        self.discounted_return = np.zeros(n_envs)
-        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
-
-    def __call__(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
-        for t in range(rewards.shape[0]):
-            self.discounted_return = self.discounted_return * self.gamma + rewards[t]
-            self._update(self.discounted_return)
-            self.discounted_return = self.discounted_return * (1 - dones[t])
-        return (rewards / math.sqrt(self.var + 1e-8)).astype(np.float32)
-
-    def _update(self, batch: np.ndarray) -> None:  # Chan et al.'s parallel mean/variance update
-        batch_mean, batch_var, batch_count = batch.mean(), batch.var(), batch.size
-        delta, total = batch_mean - self.mean, self.count + batch_count
-        self.mean += delta * batch_count / total
-        self.var = (self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / total) / total
-        self.count = total
-
-    def state_dict(self) -> dict:
-        return {"discounted_return": self.discounted_return.tolist(), "count": self.count, "mean": self.mean, "var": self.var}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.discounted_return = np.asarray(state["discounted_return"])
-        self.count, self.mean, self.var = state["count"], state["mean"], state["var"]
-
-
 def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
               bc_forward=None) -> tuple[Tensor, dict[str, float]]:
     """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch."""
@@ -222,6 +196,12 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
 
 
 # ----------------------------------------------------------------------------------- the update loop
+def low_dim_observations(trajectories: Trajectories) -> dict[str, np.ndarray]:
+    """The rollout's non-image observations, (T*N, ...) per raw env key."""
+    return {key: value.reshape(-1, *value.shape[2:]) for key, value in trajectories.observations.items()
+            if not key.startswith("pixels")}
+
+
 def flatten_time_and_envs(trajectories: Trajectories, advantages: Tensor, returns: Tensor) -> dict:
     flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731  (T, N, ...) -> (T*N, ...)
     return {
@@ -280,7 +260,8 @@ def checkpoint_name(env_steps: int) -> str:
 
 
 def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postprocessor, optimizer,
-                    schedule_state: ScheduleState, reward_scaler: RewardScaler | None) -> Path:
+                    schedule_state: ScheduleState, reward_scaler: RewardScaler | None,
+                    obs_stats: RunningObservationStats | None = None) -> Path:
     """LeRobot's layout (`checkpoints/<step>/{pretrained_model,training_state}`, `last` symlink), atomically."""
     from lerobot.optim.optimizers import save_optimizer_state
     from lerobot.utils.random_utils import save_rng_state
@@ -299,7 +280,8 @@ def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postp
     save_optimizer_state(optimizer, state_dir)
     save_rng_state(state_dir)
     training_step = {"env_steps": env_steps, **asdict(schedule_state), "theta": schedule_state.theta(cfg.schedule),
-                     "reward_scaler": reward_scaler.state_dict() if reward_scaler else None}
+                     "reward_scaler": reward_scaler.state_dict() if reward_scaler else None,
+                     "obs_stats": obs_stats.state_dict() if obs_stats else None}
     (state_dir / "training_step.json").write_text(json.dumps(training_step, indent=2))
     if final_dir.exists():
         shutil.rmtree(final_dir)
@@ -466,6 +448,8 @@ def finetune(cfg: FinetuneConfig) -> dict:
 
     if cfg.policy is None:
         raise ValueError("give --policy.path=<BC pretrained_model> or --policy.type=bcrl (PPO from scratch)")
+    if cfg.ppo.obs_normalization not in OBS_NORMALIZATION_MODES:
+        raise ValueError(f"--ppo.obs_normalization={cfg.ppo.obs_normalization!r}: choose one of {OBS_NORMALIZATION_MODES}")
     last_checkpoint = cfg.output_dir / "checkpoints" / "last"
     if cfg.schedule.type == "auto":  # BC+RL decays theta_t from 1; from scratch there is no BC term at all
         from_checkpoint = cfg.policy.pretrained_path is not None
@@ -490,12 +474,17 @@ def finetune(cfg: FinetuneConfig) -> dict:
     schedule_state, env_steps = ScheduleState(), 0
     n_envs = max(cfg.rollout.n_workers, 1) * cfg.rollout.envs_per_worker
     reward_scaler = RewardScaler(cfg.ppo.gamma, n_envs) if cfg.ppo.normalize_rewards else None
+    obs_stats = None
+    if cfg.ppo.obs_normalization == "running":
+        obs_stats = RunningObservationStats(find_normalizer(preprocessor), prior_count=dataset.num_frames)
     if cfg.resume:
         training_step = load_training_state(last_checkpoint, optimizer)
         env_steps = training_step["env_steps"]
         schedule_state = ScheduleState(training_step["optim_step"], training_step["ppo_iteration"])
         if reward_scaler and training_step["reward_scaler"]:
             reward_scaler.load_state_dict(training_step["reward_scaler"])
+        if obs_stats and training_step.get("obs_stats"):
+            obs_stats.load_state_dict(training_step["obs_stats"])
         cfg.policy.pretrained_path = initial_policy_path  # the run's origin, for the method label
     elif cfg.total_env_steps > 0:
         with torch.no_grad():  # log_std covers [delta_pos / scale (3), quaternion (4)]
@@ -523,7 +512,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
     def evaluate(n_episodes: int) -> tuple[dict, list[EpisodeStats]]:
         seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
         annotations = {"theta_t": schedule_state.theta(cfg.schedule), "env_steps": env_steps}
-        episodes = workers.evaluate(policy.state_dict(), seeds, annotations)
+        episodes = workers.evaluate(agent.state_dict(), seeds, annotations)
         return summarize_episodes(episodes, "eval"), episodes
 
     start_time, last_eval, last_save = time.time(), env_steps, env_steps
@@ -531,12 +520,15 @@ def finetune(cfg: FinetuneConfig) -> dict:
     try:
         while env_steps < cfg.total_env_steps:
             collect_start = time.time()
-            trajectories = workers.collect(policy.state_dict(), cfg.rollout.steps_per_env)
+            trajectories = workers.collect(agent.state_dict(), cfg.rollout.steps_per_env)
             env_steps += steps_per_iteration
             learn_start = time.time()
             rewards = reward_scaler(trajectories.rewards, trajectories.dones) if reward_scaler else trajectories.rewards
             metrics = ppo_update(agent, optimizer, trajectories, rewards, cfg.ppo, cfg.schedule, schedule_state,
                                  demo_batches, policy.forward)
+            if obs_stats:  # after the update, so each batch was learnt with the stats it was collected with
+                obs_stats.update(agent.lerobot_observation(low_dim_observations(trajectories)))
+                obs_stats.apply()
             row = {"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
                    "optim_step": schedule_state.optim_step, "wall_s": time.time() - start_time,
                    "collect_s": learn_start - collect_start, "learn_s": time.time() - learn_start,
@@ -550,11 +542,11 @@ def finetune(cfg: FinetuneConfig) -> dict:
             progress.set_postfix(theta=f"{row['theta']:.3f}", ret=f"{row.get('train_return', float('nan')):.0f}",
                                  succ=f"{row.get('train_success', float('nan')):.2f}")
             if env_steps - last_save >= cfg.save_freq or env_steps >= cfg.total_env_steps:
-                save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler)
+                save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler, obs_stats)
                 last_save = env_steps
         progress.close()
         if env_steps == 0 or not last_checkpoint.exists():  # BC only: still leave a checkpoint to evaluate
-            save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler)
+            save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler, obs_stats)
         final, episodes = evaluate(cfg.final_eval_episodes)
     finally:
         workers.close()

@@ -96,7 +96,7 @@ class RolloutWorker:
 
     def _load(self, state_dict: dict[str, torch.Tensor] | None) -> None:
         if state_dict is not None:
-            self.agent.module.load_state_dict(state_dict)
+            self.agent.load_state_dict(state_dict)
 
     @contextlib.contextmanager
     def _own_rng(self):
@@ -193,7 +193,8 @@ class RolloutWorker:
 
 
 class RolloutWorkers(Protocol):
-    """The interface the algorithm sees. Swap the implementation (process pool, Ray) without touching PPO."""
+    """The interface the algorithm sees. Swap the implementation (process pool, Ray) without touching PPO.
+    `state_dict` is the agent's (`Agent.state_dict()`: weights and any observation statistics)."""
 
     def collect(self, state_dict: dict[str, torch.Tensor], steps_per_env: int) -> Trajectories: ...
     def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int],
