@@ -7,13 +7,16 @@ export PYOPENGL_PLATFORM ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
-.PHONY: setup demo test test-fast bench clean
+.PHONY: setup demo test test-fast bench experiments clean
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
 	@bash scripts/demo.sh
+
+experiments: setup   # make experiments SIGMA=0.01 [MODE=images]: the paper's runs for one sigma (docs/RESULTS.md)
+	SIGMA=$(or $(SIGMA),0.1) MODE=$(or $(MODE),lowdim) bash scripts/experiments.sh
 
 test: setup
 	$(PY) -m pytest -q tests

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The paper's experiments for one sigma, low-dim (CPU) or images (GPU): record demonstrations, BC with
+# lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
+# evaluation on the same held-out seeds), and the report (Tables 1-2, plots).
+#   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
+# Sizes come from the environment (defaults: what docs/RESULTS.md measured on 2 cores); a finished step
+# whose output exists is skipped, a killed BC+RL or scratch run resumes from its last checkpoint.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+BIN=.venv/bin
+SIGMA=${SIGMA:-0.1}
+MODE=${MODE:-lowdim}                      # lowdim | images
+OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
+EPISODES=${EPISODES:-20}                  # demonstrations
+BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps (batch 256)
+RL_STEPS=${RL_STEPS:-102400}              # env steps of BC+RL
+SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: skip it)
+EVAL_EPISODES=${EVAL_EPISODES:-50}
+# theta_t = 1 for 640 optimisation steps (20k env steps), then exp(-(t - 640)/1000), 0 after 3000 (~96k env steps)
+SCHEDULE=${SCHEDULE:-"--schedule.alpha=640 --schedule.beta=1000 --schedule.phi=3000"}
+DATA="$OUT/data"
+DATASET="--dataset.repo_id=local/lift_${MODE}_sigma${SIGMA} --dataset.root=$DATA"
+IMAGES=$([ "$MODE" = images ] && echo true || echo false)
+mkdir -p "$OUT"
+
+if [ ! -f "$DATA/meta/info.json" ]; then
+  echo "== record $EPISODES episodes, sigma=$SIGMA ($MODE) =="
+  $BIN/bcrl-record --repo_id="local/lift_${MODE}_sigma${SIGMA}" --root="$DATA" --n_episodes="$EPISODES" \
+    --sigma="$SIGMA" --seed=0 --images="$IMAGES" --overwrite=true
+fi
+BC_CKPT="$OUT/bc/checkpoints/last/pretrained_model"
+if [ ! -d "$BC_CKPT" ]; then
+  echo "== BC: lerobot-train, $BC_STEPS steps =="
+  $BIN/lerobot-train --config_path="configs/bc_lift_${MODE}.json" $DATASET --output_dir="$OUT/bc" \
+    --steps="$BC_STEPS" --save_freq="$BC_STEPS" --log_freq=500
+fi
+finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or skip a finished one
+  local name=$1; shift
+  [ -f "$OUT/$name/eval_final.json" ] && return 0
+  local resume=false; [ -e "$OUT/$name/checkpoints/last" ] && resume=true
+  echo "== $name =="
+  $BIN/bcrl-finetune "$@" $DATASET --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/$name" --resume=$resume
+}
+finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
+finetune bcrl --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
+  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480
+RUNS="$OUT/bc_only,$OUT/bcrl"
+if [ "$SCRATCH_STEPS" != 0 ]; then
+  finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
+    --total_env_steps="$SCRATCH_STEPS" --rollout.n_workers=2 --rollout.envs_per_worker=2 --eval_freq=20480 --eval_episodes=10
+  RUNS="$RUNS,$OUT/scratch"
+fi
+$BIN/bcrl-report --runs="[$RUNS]" --output_dir="$OUT/report"
