@@ -39,6 +39,20 @@ def test_constant_and_dapg():
     assert theta_at(dapg, 999, ppo_iteration=3) == pytest.approx(0.1 * 0.9**3)
 
 
+def test_theta_min_floors_the_decaying_schedules_only():
+    three_phase = ScheduleConfig(type="three_phase", alpha=100, beta=50.0, phi=300, theta_min=0.2)
+    assert theta_at(three_phase, 0) == 1.0
+    assert theta_at(three_phase, 150) == pytest.approx(math.exp(-1))  # above the floor: untouched
+    assert theta_at(three_phase, 181) == pytest.approx(0.2)  # exp(-81/50) = 0.198 < 0.2
+    assert theta_at(three_phase, 300) == 0.2 and theta_at(three_phase, 10**9) == 0.2  # after phi: the floor, not 0
+    step = ScheduleConfig(type="step", step_start=0, step_every=1, step_factor=0.5, theta_min=0.1)
+    assert theta_at(step, 1) == 0.5 and theta_at(step, 50) == 0.1
+    assert theta_at(ScheduleConfig(type="dapg", theta_min=0.05), 0, ppo_iteration=1000) == 0.05
+    assert theta_at(ScheduleConfig(type="constant", constant_theta=0.0, theta_min=0.3), 5) == 0.0
+    with pytest.raises(ValueError):
+        ScheduleConfig(type="three_phase", theta_min=1.5)
+
+
 def test_invalid_schedules_are_refused():
     with pytest.raises(ValueError):
         ScheduleConfig(type="linear")

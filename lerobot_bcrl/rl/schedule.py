@@ -29,16 +29,27 @@ class ScheduleConfig:
     constant_theta: float = 0.0  # constant schedule's value
     dapg_lambda0: float = 0.1  # DAPG: initial weight
     dapg_lambda1: float = 0.95  # DAPG: decay per PPO iteration
+    # Floor of the decaying schedules (three_phase, step, dapg): theta_t = max(theta_t, theta_min). 0 is the
+    # paper (pure PPO after phi); > 0 keeps a BC anchor for good (docs/RESULTS.md: pure PPO collapsed here).
+    theta_min: float = 0.0
 
     def __post_init__(self):
         if self.type not in SCHEDULE_TYPES:
             raise ValueError(f"schedule.type must be one of {SCHEDULE_TYPES}, got {self.type!r}")
         if self.type == "three_phase" and not (0 <= self.alpha <= self.phi and self.beta > 0):
             raise ValueError("three_phase needs 0 <= alpha <= phi and beta > 0")
+        if not 0.0 <= self.theta_min <= 1.0:
+            raise ValueError(f"schedule.theta_min must be in [0, 1], got {self.theta_min}")
 
 
 def theta_at(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int = 0) -> float:
     """theta_t in [0, 1] after `optim_step` optimisation steps (and `ppo_iteration` rollouts, for DAPG)."""
+    if cfg.type == "constant":
+        return cfg.constant_theta
+    return max(_decaying_theta(cfg, optim_step, ppo_iteration), cfg.theta_min)
+
+
+def _decaying_theta(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int) -> float:
     if cfg.type == "three_phase":
         if optim_step < cfg.alpha:
             return 1.0
@@ -50,8 +61,6 @@ def theta_at(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int = 0) -> fl
             return 1.0
         n_decays = (optim_step - cfg.step_start) // cfg.step_every  # 1 at step_start, x factor 100 steps on
         return cfg.step_factor**n_decays
-    if cfg.type == "constant":
-        return cfg.constant_theta
     if cfg.type == "dapg":
         return min(1.0, cfg.dapg_lambda0 * cfg.dapg_lambda1**ppo_iteration)
     raise ValueError(f"schedule type {cfg.type!r} has no value until it is resolved (bcrl-finetune resolves 'auto')")
