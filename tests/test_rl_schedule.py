@@ -64,3 +64,19 @@ def test_state_gives_theta_from_its_counters():
     cfg = ScheduleConfig(type="three_phase", alpha=0, beta=10.0, phi=100)
     state = ScheduleState(optim_step=20, ppo_iteration=2)
     assert state.theta(cfg) == pytest.approx(math.exp(-2))
+
+
+def test_run_label_names_the_method_and_the_floor():
+    from pathlib import Path
+
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+    from lerobot_bcrl.rl.ppo import FinetuneConfig
+
+    cfg = FinetuneConfig(policy=BCRLConfig(), output_dir=Path("unused"), total_env_steps=1000)
+    assert cfg.method == "PPO from scratch"
+    cfg.policy.pretrained_path = Path("bc/pretrained_model")
+    assert cfg.method == "BC+RL"
+    cfg.schedule = ScheduleConfig(type="three_phase", alpha=10, beta=5.0, phi=20, theta_min=0.2)
+    assert cfg.method == "BC+RL, theta_t >= 0.2"
+    cfg.total_env_steps = 0
+    assert cfg.method == "BC"

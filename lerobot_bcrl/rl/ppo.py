@@ -128,7 +128,10 @@ class FinetuneConfig:
             return self.label
         if self.total_env_steps == 0:
             return "BC"
-        return "BC+RL" if self.policy.pretrained_path else "PPO from scratch"
+        if not self.policy.pretrained_path:
+            return "PPO from scratch"
+        floor = self.schedule.theta_min if self.schedule.type != "constant" else 0.0
+        return f"BC+RL, theta_t >= {floor:g}" if floor > 0 else "BC+RL"
 
 
 # --------------------------------------------------------------------------------------- maths of PPO
