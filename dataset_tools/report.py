@@ -25,6 +25,7 @@ METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
 class ReportConfig:
     runs: list[str] = field(default_factory=lambda: ["outputs/rl/*"])  # run dirs or globs (with eval_final.json)
     output_dir: Path = Path("outputs/report")
+    smooth: int = 10  # training curves: trailing mean over this many PPO iterations (1: raw)
 
 
 def wilson_ci95(successes: int, n: int) -> tuple[float, float]:
@@ -101,7 +102,17 @@ def read_log(run_dir: Path) -> dict[str, np.ndarray]:
     return {key: np.array([to_float(r[key]) for r in rows]) for key in (rows[0] if rows else {})}
 
 
-def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path) -> list[Path]:
+def trailing_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the last `window` values at each point (of fewer at the start)."""
+    if window <= 1:
+        return values
+    cumsum = np.concatenate([[0.0], np.cumsum(values)])
+    end = np.arange(1, len(values) + 1)
+    start = np.maximum(end - window, 0)
+    return (cumsum[end] - cumsum[start]) / (end - start)
+
+
+def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, smooth: int = 1) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -122,12 +133,15 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path) -
             for label, log in runs:
                 if key in log and np.isfinite(log[key]).any():
                     mask = np.isfinite(log[key])
-                    ax.plot(log["env_steps"][mask], log[key][mask], label=label, marker="." if key.startswith("eval") else None)
-            ax.set_title(title, fontsize=9)
+                    evaluation = key.startswith("eval")
+                    values = log[key][mask] if evaluation else trailing_mean(log[key][mask], smooth)
+                    ax.plot(log["env_steps"][mask], values, label=label, marker="." if evaluation else None)
+            ax.set_title(title if key.startswith("eval") or smooth <= 1 else f"{title} (mean of {smooth} iterations)", fontsize=9)
             ax.set_xlabel("env steps")
             ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7)
-        fig.tight_layout()
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+        fig.tight_layout(rect=(0, 0.06 * ((len(labels) + 3) // 4), 1, 1))
         fig.savefig(output_dir / filename, dpi=110)
         plt.close(fig)
         written.append(output_dir / filename)
@@ -143,7 +157,8 @@ def report(cfg: ReportConfig) -> dict:
     tables = markdown_tables(rows)
     (cfg.output_dir / "report.md").write_text(tables)
     (cfg.output_dir / "report.json").write_text(json.dumps(rows, indent=2))
-    plots = plot_runs([(f"{r['method']} sigma={r['sigma']:g}", read_log(Path(r["run"]))) for r in rows], cfg.output_dir)
+    plots = plot_runs([(f"{r['method']} sigma={r['sigma']:g}", read_log(Path(r["run"]))) for r in rows], cfg.output_dir,
+                      cfg.smooth)
     return {"rows": rows, "tables": tables, "plots": plots}
 
 

@@ -1,0 +1,56 @@
+"""bcrl-report: Tables 1-2 from finished runs (values recomputed from the episodes), Wilson intervals, plots."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from policy_fixtures import lowdim_dataset_root  # noqa: F401
+
+from dataset_tools.report import ReportConfig, report, trailing_mean, wilson_ci95
+from lerobot_bcrl.rl.ppo import LOG_COLUMNS
+
+
+def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int) -> Path:
+    run_dir.mkdir(parents=True)
+    episodes = [{"episode_return": r, "length": 200, "success": r > 0, "steps_to_lift": 50 if r > 0 else None,
+                 "seed": i} for i, r in enumerate(returns)]
+    (run_dir / "eval_final.json").write_text(json.dumps({
+        "method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
+        "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episodes}))
+    with (run_dir / "logs.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for i in range(1, 6):
+            writer.writerow({"env_steps": 512 * i, "theta": 1 - i / 10, "train_return": 10 * i, "train_success": 0.5,
+                             "eval_return": 20 * i if i % 2 == 0 else "", "bc_loss": 1 / i})
+    return run_dir
+
+
+def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lowdim_dataset_root, tmp_path):
+    bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0, 0.0, 200.0, 100.0], 0)
+    bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 300.0, 0.0, 300.0], 2560)
+    result = report(ReportConfig(runs=[str(bc), str(bcrl)], output_dir=tmp_path / "report", smooth=3))
+
+    rows = {r["method"]: r for r in result["rows"]}
+    assert rows["BC"]["return"] == pytest.approx(100.0) and rows["BC+RL"]["return"] == pytest.approx(225.0)
+    demo = rows["BC"]["demo_return"]
+    assert demo > 0 and rows["BC+RL"]["recovered_pct"] == pytest.approx(100 * 225.0 / demo)
+    assert rows["BC"]["success"] == 0.75 and rows["BC"]["success_ci95"] == pytest.approx(wilson_ci95(3, 4))
+    low, high = wilson_ci95(3, 4)
+    assert 0.2 < low < 0.75 < high < 1.0  # Wilson: inside [0, 1], around the rate
+    assert wilson_ci95(0, 50)[0] == pytest.approx(0.0, abs=1e-12) and wilson_ci95(0, 50)[1] > 0.05
+    tables = (tmp_path / "report" / "report.md").read_text()
+    assert "| BC | BC+RL |" in tables and f"{100 * 225.0 / demo:.0f} %" in tables
+    for name in ("return_success.png", "bc_terms.png", "theta_ppo.png"):
+        assert (tmp_path / "report" / name).stat().st_size > 10_000, name
+
+
+def test_trailing_mean_matches_a_loop():
+    values = np.random.default_rng(0).normal(size=37)
+    expected = [values[max(0, i - 4) : i + 1].mean() for i in range(len(values))]
+    np.testing.assert_allclose(trailing_mean(values, 5), expected)
+    np.testing.assert_array_equal(trailing_mean(values, 1), values)
