@@ -130,13 +130,13 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
     for filename, panels in figures.items():
         fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
         for ax, (key, title) in zip(axes, panels):
+            window = 1 if key.startswith("eval") else smooth  # evaluations are plotted as measured
             for label, log in runs:
                 if key in log and np.isfinite(log[key]).any():
                     mask = np.isfinite(log[key])
-                    evaluation = key.startswith("eval")
-                    values = log[key][mask] if evaluation else trailing_mean(log[key][mask], smooth)
-                    ax.plot(log["env_steps"][mask], values, label=label, marker="." if evaluation else None)
-            ax.set_title(title if key.startswith("eval") or smooth <= 1 else f"{title} (mean of {smooth} iterations)", fontsize=9)
+                    ax.plot(log["env_steps"][mask], trailing_mean(log[key][mask], window), label=label,
+                            marker="." if key.startswith("eval") else None)
+            ax.set_title(title if window <= 1 else f"{title} (mean of {window} iterations)", fontsize=9)
             ax.set_xlabel("env steps")
             ax.grid(alpha=0.3)
         handles, labels = axes[0].get_legend_handles_labels()

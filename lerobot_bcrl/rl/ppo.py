@@ -130,7 +130,7 @@ class FinetuneConfig:
             return "BC"
         if not self.policy.pretrained_path:
             return "PPO from scratch"
-        floor = self.schedule.theta_min if self.schedule.type != "constant" else 0.0
+        floor = self.schedule.floor
         return f"BC+RL, theta_t >= {floor:g}" if floor > 0 else "BC+RL"
 
 

@@ -42,11 +42,17 @@ class ScheduleConfig:
             raise ValueError(f"schedule.theta_min must be in [0, 1], got {self.theta_min}")
 
 
+    @property
+    def floor(self) -> float:
+        """The floor theta_t actually has: theta_min, except for the constant schedule (its own value)."""
+        return 0.0 if self.type == "constant" else self.theta_min
+
+
 def theta_at(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int = 0) -> float:
     """theta_t in [0, 1] after `optim_step` optimisation steps (and `ppo_iteration` rollouts, for DAPG)."""
     if cfg.type == "constant":
         return cfg.constant_theta
-    return max(_decaying_theta(cfg, optim_step, ppo_iteration), cfg.theta_min)
+    return max(_decaying_theta(cfg, optim_step, ppo_iteration), cfg.floor)
 
 
 def _decaying_theta(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int) -> float:
