@@ -57,12 +57,21 @@ def summarize_run(run_dir: Path) -> dict:
     lifts = [e["steps_to_lift"] for e in episodes if e["steps_to_lift"] is not None]
     mean, ci = mean_ci95(returns)
     demo = demonstrators(result["dataset_repo_id"], result["dataset_root"])
+    sampled = result.get("episodes_sampled", [])  # `--final_eval_sampled=true`: actions drawn as in training
+    sampled_successes = sum(bool(e["success"]) for e in sampled)
     return {
+        "sampled_success": sampled_successes / len(sampled) if sampled else None,
+        "sampled_success_ci95": wilson_ci95(sampled_successes, len(sampled)) if sampled else None,
         "run": str(run_dir), "dataset_root": result["dataset_root"], "method": result["method"], "env_steps": result["env_steps"], **demo,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
         "success": successes / len(episodes), "success_ci95": wilson_ci95(successes, len(episodes)),
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
     }
+
+
+def success_cell(success: float, ci95: tuple[float, float]) -> str:
+    low, high = ci95
+    return f"{100 * success:.0f} % ({max(0.0, 100 * low):.0f}-{min(100.0, 100 * high):.0f})"
 
 
 def markdown_tables(rows: list[dict]) -> str:
@@ -83,12 +92,16 @@ def markdown_tables(rows: list[dict]) -> str:
     for sigma in sigmas:
         cells = [f"{by_key[sigma, m]['recovered_pct']:.0f} %" if (sigma, m) in by_key else "-" for m in methods]
         lines.append(f"| {sigma[0]:g} | " + " | ".join(cells) + " |")
-    lines += ["", "Details", "", "| sigma | method | env steps | episodes | return (95 % CI) | % recovered | success (95 % CI) | steps to lift | run |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    any_sampled = any(r["sampled_success"] is not None for r in rows)
+    lines += ["", "Details", "", "| sigma | method | env steps | episodes | return (95 % CI) | % recovered | success (95 % CI) |"
+              + (" success, sampled actions |" if any_sampled else "") + " steps to lift | run |",
+              "|---" * (9 + any_sampled) + "|"]
     for r in sorted(rows, key=lambda r: (r["sigma"], r["method"])):
-        low, high = r["success_ci95"]
+        sampled_cell = ""
+        if any_sampled:
+            sampled_cell = f" {success_cell(r['sampled_success'], r['sampled_success_ci95'])} |" if r["sampled_success"] is not None else " - |"
         lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {r['episodes']} | {fmt(r, 'return')} |"
-                     f" {r['recovered_pct']:.0f} % | {100 * r['success']:.0f} % ({max(0.0, 100 * low):.0f}-{min(100.0, 100 * high):.0f}) |"
+                     f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
                      f" {r['steps_to_lift']:.1f} | `{r['run']}` |")
     return "\n".join(lines) + "\n"
 

@@ -14,13 +14,19 @@ from dataset_tools.report import ReportConfig, report, trailing_mean, wilson_ci9
 from lerobot_bcrl.rl.ppo import LOG_COLUMNS
 
 
-def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int) -> Path:
+def episode_dicts(returns: list[float]) -> list[dict]:
+    return [{"episode_return": r, "length": 200, "success": r > 0, "steps_to_lift": 50 if r > 0 else None, "seed": i}
+            for i, r in enumerate(returns)]
+
+
+def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int,
+             sampled_returns: list[float] | None = None) -> Path:
     run_dir.mkdir(parents=True)
-    episodes = [{"episode_return": r, "length": 200, "success": r > 0, "steps_to_lift": 50 if r > 0 else None,
-                 "seed": i} for i, r in enumerate(returns)]
-    (run_dir / "eval_final.json").write_text(json.dumps({
-        "method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
-        "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episodes}))
+    result = {"method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
+              "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episode_dicts(returns)}
+    if sampled_returns is not None:
+        result["episodes_sampled"] = episode_dicts(sampled_returns)
+    (run_dir / "eval_final.json").write_text(json.dumps(result))
     with (run_dir / "logs.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
         writer.writeheader()
@@ -32,7 +38,8 @@ def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float
 
 def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lowdim_dataset_root, tmp_path):
     bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0, 0.0, 200.0, 100.0], 0)
-    bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 300.0, 0.0, 300.0], 2560)
+    bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 300.0, 0.0, 300.0], 2560,
+                    sampled_returns=[300.0, 0.0, 0.0, 0.0])
     result = report(ReportConfig(runs=[str(bc), str(bcrl)], output_dir=tmp_path / "report", smooth=3))
 
     rows = {r["method"]: r for r in result["rows"]}
@@ -45,6 +52,12 @@ def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lo
     assert wilson_ci95(0, 50)[0] == pytest.approx(0.0, abs=1e-12) and wilson_ci95(0, 50)[1] > 0.05
     tables = (tmp_path / "report" / "report.md").read_text()
     assert "| BC | BC+RL |" in tables and f"{100 * 225.0 / demo:.0f} %" in tables
+    # The BC+RL run was also evaluated with sampled actions (1 of 4 lifted); the BC run was not.
+    assert rows["BC+RL"]["sampled_success"] == 0.25 and rows["BC"]["sampled_success"] is None
+    assert "success, sampled actions" in tables
+    bcrl_line = next(line for line in tables.splitlines() if "| BC+RL |" in line and "`" in line)
+    low, high = wilson_ci95(1, 4)
+    assert f"| 25 % ({100 * low:.0f}-{100 * high:.0f}) |" in bcrl_line
     for name in ("return_success.png", "bc_terms.png", "theta_ppo.png"):
         assert (tmp_path / "report" / name).stat().st_size > 10_000, name
 

@@ -54,7 +54,7 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     killed_at = json.loads((last / "training_state" / "training_step.json").read_text())
     assert killed_at["env_steps"] < 512
 
-    output = run_cli("bcrl-finetune", *args, "--resume=true")
+    output = run_cli("bcrl-finetune", *args, "--resume=true", "--final_eval_sampled=true")
     final = json.loads((last / "training_state" / "training_step.json").read_text())
     # 128 env steps per iteration, 4 epochs x 2 minibatches: 8 optimisation steps each, whatever the kill.
     assert final["env_steps"] == 512 and final["optim_step"] == 32 and final["ppo_iteration"] == 4
@@ -65,6 +65,9 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     first_resumed = rows[killed_at["env_steps"] // 128]
     assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
     assert "512 env steps" in output
+    result = json.loads((tmp_path / "run" / "eval_final.json").read_text())  # both final evaluations, same seeds
+    assert result["eval_episodes"] == result["eval_sampled_episodes"] == 1 and "with sampled actions" in output
+    assert [e["seed"] for e in result["episodes_sampled"]] == [e["seed"] for e in result["episodes"]]
 
     # Running observation stats: the dataset's 100 frames as prior plus all 512 rollout observations, across
     # the kill (the resumed run restored the count), and the saved preprocessor normalises with them.

@@ -102,6 +102,9 @@ class FinetuneConfig:
     eval_freq: int = 50_000  # env steps between evaluations (0: only at the end)
     eval_episodes: int = 10
     final_eval_episodes: int = 50
+    # Also run the final evaluation with actions sampled as in training (the stochastic policy PPO optimises;
+    # the deterministic evaluation above is what lerobot-eval runs); reported as `eval_sampled_*`.
+    final_eval_sampled: bool = False
     save_freq: int = 50_000  # env steps between checkpoints (and one at the end)
     # Log every evaluation episode to <output_dir>/eval_rrd/*.rrd: what happened, the policy's predicted
     # actions and values, and theta_t and the env step count at that evaluation (open with `rerun`).
@@ -512,11 +515,11 @@ def finetune(cfg: FinetuneConfig) -> dict:
     logger = RunLogger(cfg, env_steps if cfg.resume else None)
     steps_per_iteration = n_envs * cfg.rollout.steps_per_env
 
-    def evaluate(n_episodes: int) -> tuple[dict, list[EpisodeStats]]:
+    def evaluate(n_episodes: int, sample: bool = False) -> tuple[dict, list[EpisodeStats]]:
         seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
         annotations = {"theta_t": schedule_state.theta(cfg.schedule), "env_steps": env_steps}
-        episodes = workers.evaluate(agent.state_dict(), seeds, annotations)
-        return summarize_episodes(episodes, "eval"), episodes
+        episodes = workers.evaluate(agent.state_dict(), seeds, annotations, sample)
+        return summarize_episodes(episodes, "eval_sampled" if sample else "eval"), episodes
 
     start_time, last_eval, last_save = time.time(), env_steps, env_steps
     progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}")
@@ -551,6 +554,9 @@ def finetune(cfg: FinetuneConfig) -> dict:
         if env_steps == 0 or not last_checkpoint.exists():  # BC only: still leave a checkpoint to evaluate
             save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler, obs_stats)
         final, episodes = evaluate(cfg.final_eval_episodes)
+        if cfg.final_eval_sampled:
+            sampled, sampled_episodes = evaluate(cfg.final_eval_episodes, sample=True)
+            final.update(sampled, episodes_sampled=[asdict(e) for e in sampled_episodes])
     finally:
         workers.close()
         logger.close()
@@ -565,15 +571,19 @@ def finetune(cfg: FinetuneConfig) -> dict:
 @parser.wrap()
 def finetune_cli(cfg: FinetuneConfig) -> None:
     result = finetune(cfg)
-    print(
+    lines = [
         f"\nbcrl-finetune ({result['method']}): {result['env_steps']} env steps, {result['optim_step']} optimisation"
-        f" steps, theta_t = {result['theta']:.4f}, {result['wall_s']:.0f} s\n"
+        f" steps, theta_t = {result['theta']:.4f}, {result['wall_s']:.0f} s",
         f"  final evaluation over {result['eval_episodes']} episodes: return {result['eval_return']:.1f}"
         f" +/- {result['eval_return_ci95']:.1f} (95 % CI), success {100 * result['eval_success']:.0f} %,"
-        f" steps to lift {result['eval_steps_to_lift']:.1f}\n"
-        f"  checkpoint: {cfg.output_dir / 'checkpoints' / 'last' / 'pretrained_model'}\n"
-        f"  logs: {cfg.output_dir / 'logs.csv'}; evaluation: {cfg.output_dir / 'eval_final.json'}"
-    )
+        f" steps to lift {result['eval_steps_to_lift']:.1f}",
+    ]
+    if "eval_sampled_return" in result:
+        lines.append(f"  with sampled actions: return {result['eval_sampled_return']:.1f}"
+                     f" +/- {result['eval_sampled_return_ci95']:.1f}, success {100 * result['eval_sampled_success']:.0f} %")
+    lines += [f"  checkpoint: {cfg.output_dir / 'checkpoints' / 'last' / 'pretrained_model'}",
+              f"  logs: {cfg.output_dir / 'logs.csv'}; evaluation: {cfg.output_dir / 'eval_final.json'}"]
+    print("\n".join(lines))
 
 
 def main() -> None:

@@ -161,30 +161,40 @@ class RolloutWorker:
 
     @torch.no_grad()
     def evaluate(self, state_dict: dict[str, torch.Tensor] | None, seeds: list[int],
-                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]:
-        """Deterministic (mean, argmax) episodes from the given seeds on a separate env; `annotations`
-        (e.g. theta_t, env steps) go beside them into rerun when the eval env logs there."""
+                 annotations: dict[str, float] | None = None, sample: bool = False) -> list[EpisodeStats]:
+        """Episodes from the given seeds on a separate env, deterministic (mean, argmax) by default; with
+        `sample`, actions drawn as in training (the policy PPO optimises), from torch's RNG seeded with the
+        episode seed. `annotations` (e.g. theta_t, env steps) go beside them into rerun when the eval env
+        logs there."""
         self._load(state_dict)
         self.agent.module.eval()
         if self.eval_env is None:
             self.eval_env = self.make_eval_env()
         results = []
         for episode_seed in seeds:
-            obs, _ = self.eval_env.reset(seed=int(episode_seed))
-            rerun_log.annotate_rollouts(annotations or {})
-            stats = EpisodeStats(0.0, 0, False, None, seed=int(episode_seed))
-            done = False
-            while not done:
-                batch = self.agent.observation_batch(stack_observations([flatten_observation(obs)]))
-                action = self.agent.mean_action(batch)[0].numpy()
-                obs, reward, terminated, truncated, info = self.eval_env.step(action)
-                stats.episode_return += float(reward)
-                stats.length += 1
-                if info.get("is_success", False) and not stats.success:
-                    stats.success, stats.steps_to_lift = True, stats.length
-                done = terminated or truncated
-            results.append(stats)
+            with torch.random.fork_rng(devices=[]):  # reproducible, and the training RNG stream stays as it was
+                torch.manual_seed(int(episode_seed))
+                results.append(self._evaluate_episode(int(episode_seed), annotations, sample))
         return results
+
+    def _evaluate_episode(self, episode_seed: int, annotations: dict[str, float] | None, sample: bool) -> EpisodeStats:
+        obs, _ = self.eval_env.reset(seed=episode_seed)
+        rerun_log.annotate_rollouts(annotations or {})
+        stats = EpisodeStats(0.0, 0, False, None, seed=episode_seed)
+        done = False
+        while not done:
+            batch = self.agent.observation_batch(stack_observations([flatten_observation(obs)]))
+            if sample:
+                action = self.agent.to_env_action(self.agent.sample(batch)[0])[0].numpy()
+            else:
+                action = self.agent.mean_action(batch)[0].numpy()
+            obs, reward, terminated, truncated, info = self.eval_env.step(action)
+            stats.episode_return += float(reward)
+            stats.length += 1
+            if info.get("is_success", False) and not stats.success:
+                stats.success, stats.steps_to_lift = True, stats.length
+            done = terminated or truncated
+        return stats
 
     def close(self) -> None:
         for env in [*self.envs, self.eval_env]:
@@ -198,7 +208,7 @@ class RolloutWorkers(Protocol):
 
     def collect(self, state_dict: dict[str, torch.Tensor], steps_per_env: int) -> Trajectories: ...
     def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int],
-                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]: ...
+                 annotations: dict[str, float] | None = None, sample: bool = False) -> list[EpisodeStats]: ...
     def close(self) -> None: ...
 
 
@@ -215,9 +225,9 @@ class InlineWorkers:
     def collect(self, state_dict, steps_per_env):
         return Trajectories.concatenate([w.collect(state_dict, steps_per_env) for w in self.workers])
 
-    def evaluate(self, state_dict, seeds, annotations=None):
+    def evaluate(self, state_dict, seeds, annotations=None, sample=False):
         parts = split_evenly(list(seeds), len(self.workers))
-        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part, annotations)]
+        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part, annotations, sample)]
 
     def close(self):
         for w in self.workers:
@@ -265,10 +275,11 @@ class ProcessWorkers:
         parts = self._call_all("collect", [(state_dict, steps_per_env)] * len(self.connections))
         return Trajectories.concatenate(parts)
 
-    def evaluate(self, state_dict, seeds, annotations=None):
+    def evaluate(self, state_dict, seeds, annotations=None, sample=False):
         state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
         parts = self._call_all(
-            "evaluate", [(state_dict, part, annotations) for part in split_evenly(list(seeds), len(self.connections))]
+            "evaluate",
+            [(state_dict, part, annotations, sample) for part in split_evenly(list(seeds), len(self.connections))],
         )
         return [e for part in parts for e in part]
 
