@@ -12,7 +12,7 @@ BIN=.venv/bin
 SIGMA=${SIGMA:-0.1}
 MODE=${MODE:-lowdim}                      # lowdim | images
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
-EPISODES=${EPISODES:-20}                  # demonstrations
+EPISODES=${EPISODES:-100}                 # demonstrations (20 gave BC 62 % success at sigma 0.1, 100 gave 92 %)
 BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps (batch 256)
 RL_STEPS=${RL_STEPS:-102400}              # env steps of BC+RL
 SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: skip it)
@@ -44,7 +44,7 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
 }
 finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
 finetune bcrl --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
-  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480
+  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true
 RUNS="$OUT/bc_only,$OUT/bcrl"
 if [ "$SCRATCH_STEPS" != 0 ]; then
   finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
