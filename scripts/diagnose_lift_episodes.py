@@ -1,0 +1,75 @@
+"""Why a Lift policy fails: roll a checkpoint out on the held-out evaluation seeds and print, per episode,
+when the gripper first closed, where the cube was relative to the end effector then, how close the end
+effector got and how high the cube went; optionally with sampled actions (position and/or gripper) instead
+of the mean / argmax, to compare the policy PPO optimises with the one lerobot-eval runs.
+
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 .venv/bin/python scripts/diagnose_lift_episodes.py \
+        --checkpoint=outputs/.../pretrained_model --episodes=20 --modes=mean,sampled_position,sampled_both
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from lerobot_bcrl.envs.lift import LiftEnv
+from lerobot_bcrl.rl.agent import BCRLAgent, flatten_observation
+from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET
+
+MODES = {  # (sample delta_pos and rotation, sample the gripper)
+    "mean": (False, False),
+    "sampled_gripper": (False, True),
+    "sampled_position": (True, False),
+    "sampled_both": (True, True),
+}
+
+
+def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sample_gripper: bool) -> dict:
+    policy = agent.policy
+    obs, _ = env.reset(seed=seed)
+    cube_start_z = float(obs["environment_state"][2])
+    closed_at, cube_minus_eef_at_close, min_distance, max_cube_rise, lifted_at = None, None, np.inf, -np.inf, None
+    for t in range(env.horizon):
+        batch = agent.observation_batch({k: v[None] for k, v in flatten_observation(obs).items()})
+        with torch.no_grad():
+            outputs = policy.model(batch)
+            continuous_dist, gripper_dist = policy.action_distributions(outputs)
+            continuous = continuous_dist.sample() if sample_position else continuous_dist.mean
+            gripper = gripper_dist.sample() if sample_gripper else outputs.gripper_logits.argmax(-1)
+            action = policy.to_env_action(continuous, gripper)[0].numpy()
+        obs, _, _, _, info = env.step(action)
+        cube_minus_eef = obs["environment_state"][7:10]
+        min_distance = min(min_distance, float(np.linalg.norm(cube_minus_eef)))
+        max_cube_rise = max(max_cube_rise, float(obs["environment_state"][2]) - cube_start_z)
+        if action[7] > 0 and closed_at is None:
+            closed_at, cube_minus_eef_at_close = t, [round(float(x), 3) for x in cube_minus_eef]
+        if info["is_success"] and lifted_at is None:
+            lifted_at = t
+    return {"seed": seed, "success": lifted_at is not None, "lifted_at": lifted_at, "gripper_closed_at": closed_at,
+            "cube_minus_eef_at_close_m": cube_minus_eef_at_close, "min_eef_cube_distance_m": round(min_distance, 3),
+            "max_cube_rise_m": round(max_cube_rise, 3)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", required=True, help="a pretrained_model directory of a bcrl policy")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--modes", default="mean", help=f"comma-separated, from {list(MODES)}")
+    parser.add_argument("--quiet", action="store_true", help="only the success rate per mode")
+    args = parser.parse_args()
+    agent = BCRLAgent.from_pretrained(args.checkpoint)
+    env = LiftEnv(obs_type="agent_pos")
+    for mode in args.modes.split(","):
+        torch.manual_seed(0)
+        results = [episode(agent, env, EVAL_SEED_OFFSET + i, *MODES[mode]) for i in range(args.episodes)]
+        if not args.quiet:
+            for result in results:
+                print(json.dumps({"mode": mode, **result}))
+        print(json.dumps({"mode": mode, "episodes": len(results), "success": float(np.mean([r["success"] for r in results]))}))
+
+
+if __name__ == "__main__":
+    main()
