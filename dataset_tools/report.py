@@ -45,26 +45,31 @@ def demonstrators(repo_id: str, root: str) -> dict:
     returns = list(episodes["episode_return"])
     sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
     mean, ci = mean_ci95(returns)
+    success, success_ci95 = success_rate(episodes)
     return {"sigma": sigma, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
             "demo_success": float(np.mean(episodes["success"])) if "success" in episodes.column_names else float("nan")}
+
+
+def success_rate(episodes: list[dict]) -> tuple[float, tuple[float, float]]:
+    successes = sum(bool(e["success"]) for e in episodes)
+    return successes / len(episodes), wilson_ci95(successes, len(episodes))
 
 
 def summarize_run(run_dir: Path) -> dict:
     result = json.loads((run_dir / "eval_final.json").read_text())
     episodes = result["episodes"]
     returns = [e["episode_return"] for e in episodes]
-    successes = sum(bool(e["success"]) for e in episodes)
     lifts = [e["steps_to_lift"] for e in episodes if e["steps_to_lift"] is not None]
     mean, ci = mean_ci95(returns)
+    success, success_ci95 = success_rate(episodes)
     demo = demonstrators(result["dataset_repo_id"], result["dataset_root"])
     sampled = result.get("episodes_sampled", [])  # `--final_eval_sampled=true`: actions drawn as in training
-    sampled_successes = sum(bool(e["success"]) for e in sampled)
+    sampled_rate, sampled_ci95 = success_rate(sampled) if sampled else (None, None)
     return {
-        "sampled_success": sampled_successes / len(sampled) if sampled else None,
-        "sampled_success_ci95": wilson_ci95(sampled_successes, len(sampled)) if sampled else None,
+        "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
         "run": str(run_dir), "dataset_root": result["dataset_root"], "method": result["method"], "env_steps": result["env_steps"], **demo,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
-        "success": successes / len(episodes), "success_ci95": wilson_ci95(successes, len(episodes)),
+        "success": success, "success_ci95": success_ci95,
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
     }
 
