@@ -54,6 +54,40 @@ def test_ppo_interface_log_prob_matches_between_sample_and_evaluate(lowdim_datas
     assert policy.log_std.grad is not None and policy.model.value_head.weight.grad is not None
 
 
+@pytest.mark.parametrize("fixture_name", ["lowdim_dataset_root", "image_dataset_root"])
+def test_separate_critic_keeps_the_value_loss_off_the_actor(fixture_name, request):
+    dataset = load_dataset(request.getfixturevalue(fixture_name))
+    policy, preprocessor, _ = make_bcrl_policy(dataset, critic_hidden_dims=(32, 32))
+    assert policy.model.value_head is None
+    batch = preprocessor(whole_dataset_batch(dataset))
+    _, _, value = policy.evaluate_actions(batch, policy.sample_actions(batch)[0])
+    assert value.shape == (len(dataset),)
+    value.pow(2).mean().backward()
+    grads = {name: p.grad for name, p in policy.named_parameters()}
+    critic = [name for name in grads if name.startswith("model.critic.")]
+    assert critic and all(grads[name] is not None and grads[name].abs().sum() > 0 for name in critic)
+    actor = [name for name in grads if name not in critic]
+    assert any("keypoint_encoder" in name for name in actor) == (fixture_name == "image_dataset_root")
+    assert all(grads[name] is None or not grads[name].any() for name in actor), "value loss reached the actor"
+
+
+def test_bc_checkpoint_loads_with_a_fresh_separate_critic(lowdim_dataset_root, tmp_path):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_policy
+
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    policy.save_pretrained(tmp_path)
+    # what `bcrl-finetune --policy.path=<BC> --policy.critic_hidden_dims=[64]` does
+    cfg = PreTrainedConfig.from_pretrained(tmp_path, cli_overrides=["--critic_hidden_dims=[64]"])
+    cfg.pretrained_path, cfg.device = tmp_path, "cpu"
+    assert cfg.critic_hidden_dims == (64,)
+    loaded = make_policy(cfg, ds_meta=dataset.meta)
+    assert loaded.model.critic is not None and loaded.model.value_head is None
+    batch = preprocessor(whole_dataset_batch(dataset))
+    assert torch.equal(policy.select_action(dict(batch)), loaded.select_action(dict(batch)))  # the actor is BC's
+
+
 def test_gripper_class_weights_come_from_the_dataset_stats(lowdim_dataset_root):
     dataset = load_dataset(lowdim_dataset_root)
     policy, _, _ = make_bcrl_policy(dataset)

@@ -2,6 +2,7 @@
 
 `CNN(image) -> spatial softmax -> keypoints`, `MLP([keypoints, state]) -> trunk`; heads off the trunk:
 delta position, delta rotation, gripper logits, value; heads off the keypoints: EEF and grasp position.
+With `critic_hidden_dims` set, the value has its own MLP on `[keypoints (detached), state]` instead.
 """
 
 from __future__ import annotations
@@ -112,7 +113,14 @@ class BCRLModel(nn.Module):
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
         self.delta_quat_head = nn.Linear(trunk_dim, 4)
         self.gripper_head = nn.Linear(trunk_dim, 2)
-        self.value_head = nn.Linear(trunk_dim, 1)
+        # The paper's value head is one linear layer on the shared trunk; `critic_hidden_dims` gives the
+        # value its own MLP on the same inputs instead, so that the value loss never moves the actor's features.
+        if config.critic_hidden_dims:
+            self.value_head = None
+            self.critic = mlp(keypoint_dim + state_dim, config.critic_hidden_dims, 1)
+        else:
+            self.value_head = nn.Linear(trunk_dim, 1)
+            self.critic = None
         self.eef_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
         self.grasp_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
         # Start every rotation prediction near the identity, far from the ill-defined zero quaternion.
@@ -126,12 +134,16 @@ class BCRLModel(nn.Module):
     def forward(self, batch: dict[str, Tensor]) -> BCRLOutputs:
         keypoints = self.keypoints(batch)
         trunk = self.trunk(torch.cat([keypoints, batch[STATE_KEY]], dim=-1))
+        if self.critic is None:
+            value = self.value_head(trunk)
+        else:  # keypoints detached: the value loss does not reach the CNN either
+            value = self.critic(torch.cat([keypoints.detach(), batch[STATE_KEY]], dim=-1))
         delta_quat = F.normalize(self.delta_quat_head(trunk) + self.quat_offset, dim=-1)
         return BCRLOutputs(
             delta_pos_scaled=self.delta_pos_head(trunk),
             delta_quat_xyzw=delta_quat,
             gripper_logits=self.gripper_head(trunk),
-            value=self.value_head(trunk).squeeze(-1),
+            value=value.squeeze(-1),
             eef_pos_normalized=self.eef_pos_head(keypoints),
             grasp_pos_normalized=self.grasp_pos_head(keypoints),
         )
