@@ -62,12 +62,14 @@ def summarize_run(run_dir: Path) -> dict:
     lifts = [e["steps_to_lift"] for e in episodes if e["steps_to_lift"] is not None]
     mean, ci = mean_ci95(returns)
     success, success_ci95 = success_rate(episodes)
-    demo = demonstrators(result["dataset_repo_id"], result["dataset_root"])
+    # One dataset, one table row, however a run spelled its path (older runs wrote it relative to their cwd).
+    dataset_root = str(Path(result["dataset_root"]).resolve())
+    demo = demonstrators(result["dataset_repo_id"], dataset_root)
     sampled = result.get("episodes_sampled", [])  # `--final_eval_sampled=true`: actions drawn as in training
     sampled_rate, sampled_ci95 = success_rate(sampled) if sampled else (None, None)
     return {
         "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
-        "run": str(run_dir), "dataset_root": result["dataset_root"], "method": result["method"], "env_steps": result["env_steps"], **demo,
+        "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"], "env_steps": result["env_steps"], **demo,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
         "success": success, "success_ci95": success_ci95,
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),

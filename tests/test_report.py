@@ -62,6 +62,16 @@ def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lo
         assert (tmp_path / "report" / name).stat().st_size > 10_000, name
 
 
+def test_runs_on_one_dataset_share_a_row_however_its_root_was_spelled(lowdim_dataset_root, tmp_path, monkeypatch):
+    monkeypatch.chdir(lowdim_dataset_root.parent)
+    bc = fake_run(tmp_path / "bc", Path(lowdim_dataset_root.name), "BC", [100.0, 0.0], 0)  # relative, as typed
+    bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 0.0], 2560)  # absolute
+    result = report(ReportConfig(runs=[str(bc), str(bcrl)], output_dir=tmp_path / "report"))
+    assert {r["dataset_root"] for r in result["rows"]} == {str(lowdim_dataset_root.resolve())}
+    table_1 = (tmp_path / "report" / "report.md").read_text().split("Table 2")[0]
+    assert len([line for line in table_1.splitlines() if line.startswith("| 0")]) == 1, table_1
+
+
 def test_trailing_mean_matches_a_loop():
     values = np.random.default_rng(0).normal(size=37)
     expected = [values[max(0, i - 4) : i + 1].mean() for i in range(len(values))]
