@@ -94,7 +94,8 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
             f"--output_dir={tmp_path / 'bc'}", "--num_workers=0", "--policy.device=cpu", "--save_freq=2")
     bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}",
-                     *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256), "--eval_rerun=true")
+                     *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256), "--eval_rerun=true",
+                     "--policy.critic_hidden_dims=[32]")  # a fresh separate critic on the BC checkpoint
     assert "bcrl-finetune (BC+RL)" in output
     # the evaluation episode in rerun: what happened, the policy's predictions and values, and theta_t
     from lerobot_bcrl.rerun_log import read_entity_rows
@@ -111,6 +112,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
         assert (pretrained / name).exists(), name
     assert (pretrained.parent / "training_state" / "optimizer_state.safetensors").exists()
+    assert json.loads((pretrained / "config.json").read_text())["critic_hidden_dims"] == [32]
     eval_output = run_cli("lerobot-eval", f"--policy.path={pretrained}", "--env.type=bcrl_lift",
                           "--env.obs_type=agent_pos", "--env.episode_length=8", "--eval.n_episodes=1",
                           "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",
