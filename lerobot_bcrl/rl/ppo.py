@@ -561,7 +561,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         workers.close()
         logger.close()
     result = {"method": cfg.method, "env_steps": env_steps, "theta": schedule_state.theta(cfg.schedule),
-              "optim_step": schedule_state.optim_step, "dataset_root": str(Path(cfg.dataset.root).resolve()),
+              "optim_step": schedule_state.optim_step, "dataset_root": str(Path(dataset.root).resolve()),
               "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time, **final,
               "episodes": [asdict(e) for e in episodes]}
     (cfg.output_dir / "eval_final.json").write_text(json.dumps(result, indent=2))

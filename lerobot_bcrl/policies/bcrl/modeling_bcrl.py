@@ -113,9 +113,7 @@ class BCRLModel(nn.Module):
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
         self.delta_quat_head = nn.Linear(trunk_dim, 4)
         self.gripper_head = nn.Linear(trunk_dim, 2)
-        # The paper's value head is one linear layer on the shared trunk; `critic_hidden_dims` gives the
-        # value its own MLP on the same inputs instead, so that the value loss never moves the actor's features.
-        if config.critic_hidden_dims:
+        if config.critic_hidden_dims:  # a separate critic (see BCRLConfig.critic_hidden_dims)
             self.value_head = None
             self.critic = mlp(keypoint_dim + state_dim, config.critic_hidden_dims, 1)
         else:
