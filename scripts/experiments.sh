@@ -19,6 +19,10 @@ SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: sk
 EVAL_EPISODES=${EVAL_EPISODES:-50}
 # theta_t = 1 for 640 optimisation steps (20k env steps), then exp(-(t - 640)/1000), 0 after 3000 (~96k env steps)
 SCHEDULE=${SCHEDULE:-"--schedule.alpha=640 --schedule.beta=1000 --schedule.phi=3000"}
+# extra bcrl-finetune flags for the BC+RL run, e.g. docs/RESULTS.md's separate critic with whole-episode batches:
+# BCRL_ARGS="--policy.critic_hidden_dims=[256,256] --ppo.reset_log_std=-3.0 --rollout.envs_per_worker=8
+#   --rollout.steps_per_env=200 --ppo.minibatch_size=256" SCHEDULE="--schedule.alpha=300 --schedule.beta=500 --schedule.phi=1500"
+BCRL_ARGS=${BCRL_ARGS:-}
 DATA="$OUT/data"
 DATASET="--dataset.repo_id=local/lift_${MODE}_sigma${SIGMA} --dataset.root=$DATA"
 IMAGES=$([ "$MODE" = images ] && echo true || echo false)
@@ -44,7 +48,7 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
 }
 finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
 finetune bcrl --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
-  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true
+  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS
 RUNS="$OUT/bc_only,$OUT/bcrl"
 if [ "$SCRATCH_STEPS" != 0 ]; then
   finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
