@@ -45,7 +45,6 @@ def demonstrators(repo_id: str, root: str) -> dict:
     returns = list(episodes["episode_return"])
     sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
     mean, ci = mean_ci95(returns)
-    success, success_ci95 = success_rate(episodes)
     return {"sigma": sigma, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
             "demo_success": float(np.mean(episodes["success"])) if "success" in episodes.column_names else float("nan")}
 
