@@ -42,7 +42,8 @@ def finetune_args(dataset_root: Path, output_dir: Path, total_env_steps: int, *e
 def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, tmp_path):
     schedule = ["--schedule.type=three_phase", "--schedule.alpha=4", "--schedule.beta=10", "--schedule.phi=40"]
     args = finetune_args(lowdim_dataset_root, tmp_path / "run", 512, "--policy.type=bcrl",
-                         "--policy.push_to_hub=false", "--ppo.obs_normalization=running", *schedule)
+                         "--policy.push_to_hub=false", "--ppo.obs_normalization=running", "--ppo.anneal_lr=true",
+                         "--ppo.learning_rate=1e-4", *schedule)
     process = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, env=os.environ.copy())
     last = tmp_path / "run" / "checkpoints" / "last"
@@ -64,6 +65,8 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     assert [int(r["env_steps"]) for r in rows] == [128, 256, 384, 512]  # no duplicate rows from the killed run
     first_resumed = rows[killed_at["env_steps"] // 128]
     assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
+    # the annealed learning rate follows the env step count across the kill: 1e-4 * (1 - steps before / 512)
+    np.testing.assert_allclose([float(r["learning_rate"]) for r in rows], [1e-4, 7.5e-5, 5e-5, 2.5e-5])
     assert "512 env steps" in output
     result = json.loads((tmp_path / "run" / "eval_final.json").read_text())  # both final evaluations, same seeds
     assert result["eval_episodes"] == result["eval_sampled_episodes"] == 1 and "with sampled actions" in output

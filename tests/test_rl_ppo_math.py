@@ -9,7 +9,7 @@ import pytest
 import torch
 from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, whole_dataset_batch  # noqa: F401
 
-from lerobot_bcrl.rl.ppo import PPOConfig, RewardScaler, bcrl_loss, compute_gae, ppo_loss_terms
+from lerobot_bcrl.rl.ppo import PPOConfig, RewardScaler, bcrl_loss, compute_gae, learning_rate_at, ppo_loss_terms
 
 
 def test_gae_matches_a_hand_computed_trajectory():
@@ -65,6 +65,15 @@ def test_reward_scaler_divides_by_return_std():
     var = float(scaler.return_stats.var)
     assert math.sqrt(var) == pytest.approx(3.0, rel=0.05)
     assert scaled[-1, 0] == pytest.approx(rewards[-1, 0] / math.sqrt(var + 1e-8))
+
+
+def test_annealed_learning_rate_falls_linearly_to_zero_at_the_budget():
+    annealed = PPOConfig(learning_rate=3e-5, anneal_lr=True)
+    assert learning_rate_at(annealed, 0, 1000) == pytest.approx(3e-5)
+    assert learning_rate_at(annealed, 250, 1000) == pytest.approx(2.25e-5)
+    assert learning_rate_at(annealed, 1000, 1000) == 0.0 and learning_rate_at(annealed, 1200, 1000) == 0.0
+    constant = PPOConfig(learning_rate=3e-5)
+    assert learning_rate_at(constant, 0, 1000) == learning_rate_at(constant, 999, 1000) == 3e-5
 
 
 def _grads(module) -> dict[str, torch.Tensor]:

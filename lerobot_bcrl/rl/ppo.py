@@ -66,6 +66,10 @@ class PPOConfig:
     # them, so lerobot-eval normalises as training did. No normalisation: --policy.normalization_mapping.
     obs_normalization: str = "dataset"
     target_kl: float | None = None  # stop an iteration's epochs early when approx_kl exceeds it
+    # CleanRL's anneal_lr: the learning rate falls linearly from learning_rate (at env step 0) towards 0 (at
+    # total_env_steps), set before each iteration from the env step count, so a resumed run goes on where it was
+    # (resuming with a larger --total_env_steps raises it again).
+    anneal_lr: bool = False
     # Set the policy's learned log-std at the start (BC never trains it), for delta_pos / scale and for the
     # quaternion: the demos barely rotate, and quaternion noise of the position's size turns the wrist
     # ~15 degrees a step (clamped to pi/40), which the BC policy never saw.
@@ -202,6 +206,13 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
 
 
 # ----------------------------------------------------------------------------------- the update loop
+def learning_rate_at(cfg: PPOConfig, env_steps: int, total_env_steps: int) -> float:
+    """The learning rate of the iteration that starts after `env_steps` env steps."""
+    if not cfg.anneal_lr:
+        return cfg.learning_rate
+    return cfg.learning_rate * max(1.0 - env_steps / total_env_steps, 0.0)
+
+
 def low_dim_observations(trajectories: Trajectories) -> dict[str, np.ndarray]:
     """The rollout's non-image observations, (T*N, ...) per raw env key."""
     return {key: value.reshape(-1, *value.shape[2:]) for key, value in trajectories.observations.items()
@@ -311,7 +322,7 @@ def load_training_state(checkpoint_dir: Path, optimizer) -> dict:
 
 # ------------------------------------------------------------------------------------------ logging
 LOG_COLUMNS = [
-    "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "collect_s", "learn_s",
+    "env_steps", "ppo_iteration", "optim_step", "theta", "learning_rate", "wall_s", "collect_s", "learn_s",
     "train_return", "train_success", "train_episodes",
     "loss", "ppo_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
     "grad_norm", "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
@@ -527,6 +538,9 @@ def finetune(cfg: FinetuneConfig) -> dict:
         while env_steps < cfg.total_env_steps:
             collect_start = time.time()
             trajectories = workers.collect(agent.state_dict(), cfg.rollout.steps_per_env)
+            learning_rate = learning_rate_at(cfg.ppo, env_steps, cfg.total_env_steps)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate
             env_steps += steps_per_iteration
             learn_start = time.time()
             rewards = reward_scaler(trajectories.rewards, trajectories.dones) if reward_scaler else trajectories.rewards
@@ -538,6 +552,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
             row = {"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
                    "optim_step": schedule_state.optim_step, "wall_s": time.time() - start_time,
                    "collect_s": learn_start - collect_start, "learn_s": time.time() - learn_start,
+                   "learning_rate": learning_rate,
                    **metrics, **summarize_episodes(trajectories.episodes, "train")}
             row["theta"] = schedule_state.theta(cfg.schedule)  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
