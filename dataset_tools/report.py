@@ -161,7 +161,7 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
         handles, labels = axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
         fig.tight_layout(rect=(0, 0.06 * ((len(labels) + 3) // 4), 1, 1))
-        fig.savefig(output_dir / filename, dpi=110)
+        fig.savefig(output_dir / filename, dpi=110, bbox_inches="tight")  # long run labels: keep the legend whole
         plt.close(fig)
         written.append(output_dir / filename)
     return written
