@@ -32,9 +32,27 @@ class Phase(IntEnum):
     LIFT = 3
 
 
+# A planned miss closes the first grasp this much above the grasp point (uniform in the range) and up to
+# MISS_MAX_ASIDE_M aside in a random direction: the fingers close on air above the cube, lift, find the
+# cube left behind (the expert's "dropped it" rule) and retry.
+MISS_HEIGHT_RANGE_M = (0.03, 0.045)
+MISS_MAX_ASIDE_M = 0.015
+
+
+def sample_miss_offset(rng: np.random.Generator) -> np.ndarray:
+    """Where a planned miss closes, relative to the grasp point (metres, world frame)."""
+    angle = rng.uniform(0.0, 2 * np.pi)
+    aside = MISS_MAX_ASIDE_M * np.sqrt(rng.uniform())  # uniform over the disc
+    return np.array([aside * np.cos(angle), aside * np.sin(angle), rng.uniform(*MISS_HEIGHT_RANGE_M)])
+
+
 @dataclass
 class ScriptedLiftExpert:
-    """Approach above the cube, descend, close, lift, hold; retries if the cube slips out."""
+    """Approach above the cube, descend, close, lift, hold; retries if the cube slips out.
+
+    `reset(miss_offset_m=...)` plans a miss: the first grasp closes that far from the grasp point, then the
+    expert retries as after a drop. While it acts out the miss, `acting_on_planned_miss` is True.
+    """
 
     hover_height_m: float = 0.06  # above the cube centre before descending
     grasp_depth_m: float = 0.0  # below the cube centre for the grip site
@@ -44,11 +62,13 @@ class ScriptedLiftExpert:
     position_gain: float = 2.0  # commanded delta per metre of error (OSC covers ~1/4 of a command per step)
     yaw_gain: float = 1.0  # fraction of the yaw error commanded per step
 
-    def reset(self) -> None:
+    def reset(self, miss_offset_m: np.ndarray | None = None) -> None:
         self.phase = Phase.APPROACH
         self._close_count = 0
         self._descend_count = 0
         self._cube_start_pos: np.ndarray | None = None
+        self._miss_offset_m = None if miss_offset_m is None else np.asarray(miss_offset_m, dtype=np.float64)
+        self.acting_on_planned_miss = False
 
     def act(self, observation: dict) -> np.ndarray:
         state = np.asarray(observation["agent_pos"], dtype=np.float64)
@@ -58,18 +78,19 @@ class ScriptedLiftExpert:
         if self._cube_start_pos is None:
             self._cube_start_pos = cube_pos.copy()
 
+        miss_offset = self._miss_offset_m if self._miss_offset_m is not None else np.zeros(3)
         gripper = geometry.GRIPPER_OPEN
         if self.phase == Phase.APPROACH:
-            target = cube_pos + [0.0, 0.0, self.hover_height_m]
+            target = cube_pos + [0.0, 0.0, self.hover_height_m] + miss_offset * [1.0, 1.0, 0.0]
             if np.linalg.norm((target - eef_pos)[:2]) < 0.008 and abs(target[2] - eef_pos[2]) < 0.02:
                 self.phase = Phase.DESCEND
         if self.phase == Phase.DESCEND:
-            target = cube_pos - [0.0, 0.0, self.grasp_depth_m]
+            target = cube_pos - [0.0, 0.0, self.grasp_depth_m] + miss_offset
             self._descend_count += 1
             if np.linalg.norm((target - eef_pos)[:2]) > 0.02:  # pushed the cube: hover again
                 self.phase = Phase.APPROACH
                 self._descend_count = 0
-                target = cube_pos + [0.0, 0.0, self.hover_height_m]
+                target = cube_pos + [0.0, 0.0, self.hover_height_m] + miss_offset * [1.0, 1.0, 0.0]
             elif abs(target[2] - eef_pos[2]) < 0.01 or self._descend_count >= self.max_descend_steps:
                 self.phase = Phase.CLOSE
         if self.phase == Phase.CLOSE:
@@ -78,6 +99,7 @@ class ScriptedLiftExpert:
             self._close_count += 1
             if self._close_count >= self.close_steps:
                 self.phase = Phase.LIFT
+                self._miss_offset_m = None  # the planned miss is done; from here on, the plain expert
         if self.phase == Phase.LIFT:
             target = self._cube_start_pos + [0.0, 0.0, self.lift_height_m]
             gripper = geometry.GRIPPER_CLOSED
@@ -86,6 +108,8 @@ class ScriptedLiftExpert:
                 self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN
 
+        # This action is part of the miss if the miss is still planned once the phase is settled.
+        self.acting_on_planned_miss = self._miss_offset_m is not None
         delta_pos_m = self.position_gain * (target - eef_pos)
         delta_quat = self._yaw_alignment(eef_quat, cube_quat) if self.phase <= Phase.DESCEND else None
         if delta_quat is None:

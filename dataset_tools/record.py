@@ -21,7 +21,7 @@ from tqdm import tqdm
 from lerobot_bcrl import features as F
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.geometry import delta_action_from_poses
-from dataset_tools.experts import Expert, PolicyExpert, ScriptedLiftExpert
+from dataset_tools.experts import Expert, PolicyExpert, ScriptedLiftExpert, sample_miss_offset
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise, beta_demonstrators
 from dataset_tools.summary import print_summary, summarize
 from dataset_tools.writer import (
@@ -53,6 +53,9 @@ class RecordConfig:
     demonstrators: list[DemonstratorConfig] = field(default_factory=list)
     beta_demonstrators: BetaDemonstratorsConfig = field(default_factory=BetaDemonstratorsConfig)
     expert: str = "scripted"  # "scripted", or the path of a LeRobot policy checkpoint (pretrained_model)
+    # Share of episodes (scripted expert) whose first grasp is a planned miss, then a retry: recoveries that
+    # first-try demonstrations never show. The miss's frames get aux.imitate = False (BC skips them).
+    miss_probability: float = 0.0
     images: bool = True  # record the agentview camera (False: low-dim dataset)
     video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
     image_size: int = 128
@@ -61,6 +64,12 @@ class RecordConfig:
     dense_reward: bool = False  # store robosuite's shaped reward instead of the sparse one
     overwrite: bool = False  # replace an existing dataset at root
     device: str = "cpu"  # for a policy expert
+
+    def __post_init__(self):
+        if not 0.0 <= self.miss_probability <= 1.0:
+            raise ValueError(f"miss_probability must be in [0, 1], got {self.miss_probability}")
+        if self.miss_probability > 0 and self.expert != "scripted":
+            raise ValueError("miss_probability needs the scripted expert (a policy expert cannot plan a miss)")
 
     def resolved_demonstrators(self) -> list[DemonstratorConfig]:
         if self.demonstrators:
@@ -77,11 +86,21 @@ def make_expert(cfg: RecordConfig) -> Expert:
     return PolicyExpert(cfg.expert, device=cfg.device)
 
 
-def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> tuple[dict, dict]:
-    """One episode: (frames as arrays keyed by dataset feature, episode statistics)."""
+def record_episode(
+    env, expert: Expert, noise: DemonstratorNoise, seed: int, miss_offset_m: np.ndarray | None = None
+) -> tuple[dict, dict]:
+    """One episode: (frames as arrays keyed by dataset feature, episode statistics).
+
+    `miss_offset_m` (scripted expert only) plans a missed first grasp; its frames are flagged not to imitate.
+    """
     observation, _ = env.reset(seed=seed)
-    expert.reset()
-    columns: dict[str, list] = {k: [] for k in (F.STATE_KEY, F.ENV_STATE_KEY, F.ACTION_KEY, F.AUX_EEF_POS_KEY)}
+    if miss_offset_m is None:
+        expert.reset()
+    else:
+        expert.reset(miss_offset_m=miss_offset_m)
+    columns: dict[str, list] = {
+        k: [] for k in (F.STATE_KEY, F.ENV_STATE_KEY, F.ACTION_KEY, F.AUX_EEF_POS_KEY, F.AUX_IMITATE_KEY)
+    }
     columns.update({F.REWARD_KEY: [], F.DONE_KEY: [], F.SUCCESS_KEY: []})
     if "pixels" in observation:
         columns[F.IMAGE_KEY] = []
@@ -91,6 +110,7 @@ def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> 
     done = False
     while not done:
         noisy = np.clip(expert.act(observation) + noise.sample(), -1.0, 1.0)
+        columns[F.AUX_IMITATE_KEY].append([not getattr(expert, "acting_on_planned_miss", False)])
         action, clamped = controller.controller_to_delta_action(noisy)
         n_clamped += int(clamped)
         next_observation, reward, terminated, truncated, info = env.step(action)
@@ -122,6 +142,8 @@ def record_episode(env, expert: Expert, noise: DemonstratorNoise, seed: int) -> 
         "success": bool(frames[F.SUCCESS_KEY].any()),
         "steps_to_lift": steps_to_lift,
         "n_clamped_actions": n_clamped,
+        "planned_miss": miss_offset_m is not None,
+        "n_frames_not_imitated": int((~frames[F.AUX_IMITATE_KEY]).sum()),
     }
     return frames, stats
 
@@ -159,7 +181,10 @@ def record(cfg: RecordConfig) -> Path:
                     demonstrator = demonstrators[demonstrator_id]
                     noise = DemonstratorNoise(demonstrator, controller.CONTROLLER_ACTION_DIM, [cfg.seed, episode_index])
                     env_seed = cfg.seed + episode_index
-                    frames, stats = record_episode(env, expert, noise, env_seed)
+                    # Its own stream, so that miss_probability = 0 records the same episodes as before.
+                    miss_rng = np.random.default_rng([cfg.seed, episode_index, 1])
+                    miss = sample_miss_offset(miss_rng) if miss_rng.uniform() < cfg.miss_probability else None
+                    frames, stats = record_episode(env, expert, noise, env_seed, miss)
                     write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
                     rows.append(
                         {

@@ -55,6 +55,13 @@ def summarize(root: Path) -> dict:
                 for d, group in episodes.groupby("demonstrator_id")
             ],
         )
+    if "planned_miss" in episodes and episodes["planned_miss"].any():
+        misses = episodes[episodes["planned_miss"].astype(bool)]
+        summary.update(
+            planned_miss_episodes=len(misses),
+            planned_miss_success_rate=float(misses["success"].mean()),
+            frames_not_imitated=int(episodes["n_frames_not_imitated"].sum()),
+        )
     meta = read_bcrl_meta(root)
     if meta:
         summary["made_by"] = meta.get("command")
@@ -76,6 +83,11 @@ def print_summary(summary: dict, root: Path | None = None) -> None:
                     f"    demonstrator {d['demonstrator_id']}: sigma={d['noise_std']:.3f} episodes={d['episodes']}"
                     f" success={d['success_rate']:.0%} return={d['mean_return']:.1f}"
                 )
+    if summary.get("planned_miss_episodes"):
+        print(
+            f"  planned misses: {summary['planned_miss_episodes']} episodes (then retried:"
+            f" {summary['planned_miss_success_rate']:.0%} lifted), {summary['frames_not_imitated']} frames not imitated"
+        )
     if summary.get("made_by"):
         print(f"  made by: {summary['made_by']}")
 

@@ -52,15 +52,19 @@ def atomic_dataset_dir(root: Path, overwrite: bool = False) -> Iterator[Path]:
     os.replace(tmp_root, root)
 
 
-def aux_labels(eef_pos: np.ndarray, gripper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Grasp position: the EEF position at the first frame whose gripper is closed, for every frame.
+def aux_labels(eef_pos: np.ndarray, gripper: np.ndarray, imitate: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp position: the EEF position where the gripper first starts closing, for every frame.
 
-    Returns `(grasp_pos (T, 3), grasp_valid (T, 1))`; an episode that never closes the gripper gets its
-    last EEF position and `grasp_valid = False`, so the loss can mask it.
+    A closing that starts on a planned-mistake frame (`imitate` False: a first grasp missed on purpose) is
+    not the grasp; the next one is. Returns `(grasp_pos (T, 3), grasp_valid (T, 1))`; an episode with no
+    grasp gets its last EEF position and `grasp_valid = False`, so the loss can mask it.
     """
-    closed = np.flatnonzero(np.asarray(gripper).reshape(-1) >= GRIPPER_CLOSED)
-    valid = closed.size > 0
-    grasp = eef_pos[closed[0]] if valid else eef_pos[-1]
+    closed = np.asarray(gripper).reshape(-1) >= GRIPPER_CLOSED
+    onsets = np.flatnonzero(closed & ~np.concatenate([[False], closed[:-1]]))
+    if imitate is not None:
+        onsets = onsets[np.asarray(imitate).reshape(-1)[onsets]]
+    valid = onsets.size > 0
+    grasp = eef_pos[onsets[0]] if valid else eef_pos[-1]
     n = len(eef_pos)
     return np.tile(grasp.astype(np.float32), (n, 1)), np.full((n, 1), valid)
 
@@ -91,9 +95,14 @@ def check_episode(frames: dict[str, np.ndarray], source: str, episode_index: int
 
 
 def write_episode(dataset, frames: dict[str, np.ndarray], task: str, source: str) -> None:
-    """Add one whole episode (every feature as a (T, ...) array, aux grasp labels derived) and save it."""
+    """Add one whole episode (every feature as a (T, ...) array, aux grasp labels derived) and save it.
+
+    `aux.imitate` defaults to True on every frame (no planned mistakes)."""
     frames = dict(frames)
-    grasp_pos, grasp_valid = aux_labels(frames[F.AUX_EEF_POS_KEY], frames[F.ACTION_KEY][:, 7])
+    frames.setdefault(F.AUX_IMITATE_KEY, np.ones((len(frames[F.ACTION_KEY]), 1), dtype=bool))
+    grasp_pos, grasp_valid = aux_labels(
+        frames[F.AUX_EEF_POS_KEY], frames[F.ACTION_KEY][:, 7], frames[F.AUX_IMITATE_KEY]
+    )
     frames[F.AUX_GRASP_POS_KEY] = grasp_pos
     frames[F.AUX_GRASP_VALID_KEY] = grasp_valid
     check_episode(frames, source, dataset.meta.total_episodes)

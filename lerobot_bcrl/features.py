@@ -16,6 +16,9 @@ ACTION_KEY = "action"
 AUX_EEF_POS_KEY = "aux.eef_pos"
 AUX_GRASP_POS_KEY = "aux.grasp_pos"
 AUX_GRASP_VALID_KEY = "aux.grasp_valid"
+# False on the frames of a planned mistake (bcrl-record --miss_probability: a first grasp missed on purpose,
+# then retried): the BC loss skips them, so a policy learns the retry and not the miss.
+AUX_IMITATE_KEY = "aux.imitate"
 # The delta between consecutive measured EEF poses (same layout as `action`). In simulation `action` is
 # what the controller was commanded; robosuite's OSC covers only part of each command, so the two differ.
 AUX_PROPRIO_ACTION_KEY = "aux.proprio_action"
@@ -48,6 +51,7 @@ def dataset_features(image_size: int | None, use_videos: bool) -> dict[str, dict
         AUX_EEF_POS_KEY: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]},
         AUX_GRASP_POS_KEY: {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]},
         AUX_GRASP_VALID_KEY: {"dtype": "bool", "shape": (1,), "names": None},
+        AUX_IMITATE_KEY: {"dtype": "bool", "shape": (1,), "names": None},
         AUX_PROPRIO_ACTION_KEY: {"dtype": "float32", "shape": (ACTION_DIM,), "names": ACTION_NAMES},
         REWARD_KEY: {"dtype": "float32", "shape": (1,), "names": None},
         DONE_KEY: {"dtype": "bool", "shape": (1,), "names": None},

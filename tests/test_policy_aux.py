@@ -9,7 +9,7 @@ import pytest
 import torch
 from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy  # noqa: F401
 
-from lerobot_bcrl.features import AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY
+from lerobot_bcrl.features import ACTION_KEY, AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY, AUX_IMITATE_KEY
 
 AUX_KEYS = (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY)
 
@@ -84,3 +84,32 @@ def test_missing_aux_targets_fail_loudly(lowdim_dataset_root):
     policy.config.require_aux_targets = False
     _, metrics = policy.forward(batch)
     assert "bc_aux_eef_mse" not in metrics
+
+
+def test_bc_loss_skips_frames_flagged_not_to_imitate(lowdim_dataset_root):
+    """Frames of a planned miss (aux.imitate False) change neither the loss nor its gradient."""
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    batch = preprocessor(raw_batch(dataset, batch_size=16))
+    assert batch[AUX_IMITATE_KEY].all()  # the fixture dataset has no planned misses
+    keep = torch.arange(16) % 3 != 0
+    flagged = dict(batch, **{AUX_IMITATE_KEY: keep[:, None]})
+    flagged[ACTION_KEY] = torch.where(keep[:, None], batch[ACTION_KEY], -batch[ACTION_KEY])  # wrong labels
+    flagged[AUX_GRASP_POS_KEY] = torch.where(keep[:, None], batch[AUX_GRASP_POS_KEY], batch[AUX_GRASP_POS_KEY] + 1)
+    subset = {k: v[keep] if isinstance(v, torch.Tensor) and len(v) == 16 else v for k, v in batch.items()}
+
+    def loss_and_grad(b):
+        policy.zero_grad()
+        loss, _ = policy.forward(b)
+        loss.backward()
+        return loss.item(), torch.cat([p.grad.flatten() for p in policy.parameters() if p.grad is not None])
+
+    loss_flagged, grad_flagged = loss_and_grad(flagged)
+    loss_subset, grad_subset = loss_and_grad(subset)
+    loss_all, _ = loss_and_grad(batch)
+    assert loss_flagged == pytest.approx(loss_subset, rel=1e-5)
+    assert torch.allclose(grad_flagged, grad_subset, atol=1e-6)
+    assert loss_all != pytest.approx(loss_subset, rel=1e-3)  # the dropped rows did count before
+    nothing = dict(batch, **{AUX_IMITATE_KEY: torch.zeros(16, 1, dtype=torch.bool)})
+    loss_none, grad_none = loss_and_grad(nothing)
+    assert loss_none == 0.0 and not grad_none.any()

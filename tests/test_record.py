@@ -142,6 +142,47 @@ def test_several_demonstrators_are_assigned_round_robin(tmp_path):
     assert list(episodes["noise_std"]) == pytest.approx([0.0, 0.2, 0.0])
 
 
+def test_planned_miss_is_flagged_then_retried_and_lifted(tmp_path):
+    cfg = _cfg(tmp_path / "miss", images=False, n_episodes=2, episode_length=100, miss_probability=1.0)
+    rec.record(cfg)
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    episodes = LeRobotDatasetMetadata("local/test", root=cfg.root).episodes
+    assert list(episodes["planned_miss"]) == [True, True] and list(episodes["success"]) == [True, True]
+    ds = _load(cfg.root)
+    for episode in range(2):
+        rows = [ds[episode * 100 + t] for t in range(100)]
+        imitate = np.array([bool(r[F.AUX_IMITATE_KEY]) for r in rows])
+        closed = np.array([r[F.ACTION_KEY][7].item() > 0 for r in rows])
+        cube_z = np.array([r[F.ENV_STATE_KEY][2].item() for r in rows])
+        eef = np.stack([r[F.AUX_EEF_POS_KEY].numpy() for r in rows])
+        miss = np.flatnonzero(~imitate)
+        assert episodes["n_frames_not_imitated"][episode] == len(miss) > 0
+        assert miss[0] == 0 and np.all(np.diff(miss) == 1)  # one block from the start: approach, descend, close
+        assert np.argmax(closed) in miss  # the first close is part of the miss
+        after = np.arange(miss[-1] + 1, 100)
+        reopened = after[~closed[after]]
+        assert len(reopened) > 0, "the expert never opened the gripper after the miss"
+        regrasp = reopened[0] + int(np.argmax(closed[reopened[0]:]))
+        assert closed[regrasp] and regrasp > reopened[0]
+        assert cube_z[: reopened[0]].max() - cube_z[0] < 0.005  # the miss did not move the cube up
+        assert cube_z.max() - cube_z[0] > 0.04  # the retry lifted it
+        # the grasp label is where the retry closed, not the miss
+        np.testing.assert_array_equal(rows[0][F.AUX_GRASP_POS_KEY].numpy(), eef[regrasp])
+    from dataset_tools.summary import summarize
+
+    summary = summarize(cfg.root)
+    assert summary["planned_miss_episodes"] == 2 and summary["planned_miss_success_rate"] == 1.0
+    assert summary["frames_not_imitated"] == sum(episodes["n_frames_not_imitated"])
+
+
+def test_planned_misses_need_the_scripted_expert_and_a_probability():
+    with pytest.raises(ValueError, match="miss_probability must be in"):
+        rec.RecordConfig(miss_probability=1.5)
+    with pytest.raises(ValueError, match="scripted expert"):
+        rec.RecordConfig(miss_probability=0.2, expert="outputs/some/pretrained_model")
+
+
 def test_correlated_noise_statistics():
     d = DemonstratorConfig(noise_std=0.1, noise_mean=0.02, noise_correlation=0.9)
     noise = DemonstratorNoise(d, action_dim=7, seed=0)

@@ -7,7 +7,7 @@ With `critic_hidden_dims` set, the value has its own MLP on `[keypoints (detache
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -20,6 +20,7 @@ from lerobot_bcrl.features import (
     AUX_EEF_POS_KEY,
     AUX_GRASP_POS_KEY,
     AUX_GRASP_VALID_KEY,
+    AUX_IMITATE_KEY,
     ENV_STATE_KEY,
     STATE_KEY,
 )
@@ -259,8 +260,17 @@ class BCRLPolicy(PreTrainedPolicy):
 
     # -- BC loss ----------------------------------------------------------------------------------------
     def bc_loss(self, outputs: BCRLOutputs, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
-        """The weighted sum of method.md section 3 and each term (unweighted) for the logs."""
+        """The weighted sum of method.md section 3 and each term (unweighted) for the logs.
+
+        Frames flagged `aux.imitate = False` (a demonstrator's planned mistake) are left out.
+        """
         cfg = self.config
+        if AUX_IMITATE_KEY in batch:
+            keep = batch[AUX_IMITATE_KEY].reshape(-1).bool()
+            if not keep.any():  # nothing to imitate in this batch: a zero loss that still has a graph
+                return outputs.delta_pos_scaled.sum() * 0.0, {"bc_loss": 0.0}
+            if not keep.all():
+                outputs, batch = _select_rows(outputs, batch, keep)
         action = batch[ACTION_KEY]
         target_pos_scaled = action[:, :3] / cfg.delta_pos_scale_m
         target_gripper_class = (action[:, 7] > 0).long()
@@ -309,3 +319,13 @@ class BCRLPolicy(PreTrainedPolicy):
                 outputs.grasp_pos_normalized, grasp_target, batch[AUX_GRASP_VALID_KEY].bool()
             ),
         }
+
+
+def _select_rows(outputs: BCRLOutputs, batch: dict, keep: Tensor) -> tuple[BCRLOutputs, dict]:
+    """The rows of `outputs` and of every per-frame tensor of `batch` where `keep` is True."""
+    kept_outputs = BCRLOutputs(**{f.name: getattr(outputs, f.name)[keep] for f in fields(outputs)})
+    kept_batch = {
+        key: value[keep] if isinstance(value, Tensor) and value.shape[:1] == keep.shape else value
+        for key, value in batch.items()
+    }
+    return kept_outputs, kept_batch

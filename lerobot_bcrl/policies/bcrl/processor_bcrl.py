@@ -11,10 +11,16 @@ from typing import Any
 import torch
 from lerobot.processor import PolicyAction, PolicyProcessorPipeline, converters, make_default_pre_post_processors
 
-from lerobot_bcrl.features import AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY, AUX_PROPRIO_ACTION_KEY
+from lerobot_bcrl.features import (
+    AUX_EEF_POS_KEY,
+    AUX_GRASP_POS_KEY,
+    AUX_GRASP_VALID_KEY,
+    AUX_IMITATE_KEY,
+    AUX_PROPRIO_ACTION_KEY,
+)
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
-AUX_TARGET_KEYS = (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY, AUX_PROPRIO_ACTION_KEY)
+AUX_TARGET_KEYS = (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY, AUX_IMITATE_KEY, AUX_PROPRIO_ACTION_KEY)
 
 
 def keep_aux_targets_in_batches() -> None:
