@@ -1,7 +1,8 @@
 """Why a Lift policy fails: roll a checkpoint out on the held-out evaluation seeds and print, per episode,
 when the gripper first closed, where the cube was relative to the end effector then, how close the end
-effector got and how high the cube went; optionally with sampled actions (position and/or gripper) instead
-of the mean / argmax, to compare the policy PPO optimises with the one lerobot-eval runs.
+effector got, how high the cube went and how many times the gripper closed (a retry is a second closing);
+optionally with sampled actions (position and/or gripper) instead of the mean / argmax, to compare the
+policy PPO optimises with the one lerobot-eval runs.
 
     MUJOCO_GL=egl OMP_NUM_THREADS=1 .venv/bin/python scripts/diagnose_lift_episodes.py \
         --checkpoint=outputs/.../pretrained_model --episodes=20 --modes=mean,sampled_position,sampled_both
@@ -32,6 +33,7 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
     obs, _ = env.reset(seed=seed)
     cube_start_z = float(obs["environment_state"][2])
     closed_at, cube_minus_eef_at_close, min_distance, max_cube_rise, lifted_at = None, None, np.inf, -np.inf, None
+    grasp_attempts, was_closed = 0, False  # closings of the gripper (a retry after a miss is a second one)
     for t in range(env.horizon):
         batch = agent.observation_batch({k: v[None] for k, v in flatten_observation(obs).items()})
         with torch.no_grad():
@@ -46,11 +48,13 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
         max_cube_rise = max(max_cube_rise, float(obs["environment_state"][2]) - cube_start_z)
         if action[7] > 0 and closed_at is None:
             closed_at, cube_minus_eef_at_close = t, [round(float(x), 3) for x in cube_minus_eef]
+        grasp_attempts += int(action[7] > 0 and not was_closed)
+        was_closed = bool(action[7] > 0)
         if info["is_success"] and lifted_at is None:
             lifted_at = t
     return {"seed": seed, "success": lifted_at is not None, "lifted_at": lifted_at, "gripper_closed_at": closed_at,
             "cube_minus_eef_at_close_m": cube_minus_eef_at_close, "min_eef_cube_distance_m": round(min_distance, 3),
-            "max_cube_rise_m": round(max_cube_rise, 3)}
+            "max_cube_rise_m": round(max_cube_rise, 3), "grasp_attempts": grasp_attempts}
 
 
 def main() -> None:
@@ -68,7 +72,9 @@ def main() -> None:
         if not args.quiet:
             for result in results:
                 print(json.dumps({"mode": mode, **result}))
-        print(json.dumps({"mode": mode, "episodes": len(results), "success": float(np.mean([r["success"] for r in results]))}))
+        print(json.dumps({"mode": mode, "episodes": len(results), "success": float(np.mean([r["success"] for r in results])),
+                          "episodes_with_a_retry": sum(r["grasp_attempts"] > 1 for r in results),
+                          "successes_after_a_retry": sum(r["grasp_attempts"] > 1 and r["success"] for r in results)}))
 
 
 if __name__ == "__main__":
