@@ -23,6 +23,8 @@ SCHEDULE=${SCHEDULE:-"--schedule.alpha=640 --schedule.beta=1000 --schedule.phi=3
 # BCRL_ARGS="--policy.critic_hidden_dims=[256,256] --ppo.reset_log_std=-3.0 --rollout.envs_per_worker=8
 #   --rollout.steps_per_env=200 --ppo.minibatch_size=256" SCHEDULE="--schedule.alpha=300 --schedule.beta=500 --schedule.phi=1500"
 BCRL_ARGS=${BCRL_ARGS:-}
+# extra bcrl-record flags, e.g. RECORD_ARGS="--miss_probability=0.3" (demonstrations with planned misses and retries)
+RECORD_ARGS=${RECORD_ARGS:-}
 DATA="$OUT/data"
 DATASET="--dataset.repo_id=local/lift_${MODE}_sigma${SIGMA} --dataset.root=$DATA"
 IMAGES=$([ "$MODE" = images ] && echo true || echo false)
@@ -31,7 +33,7 @@ mkdir -p "$OUT"
 if [ ! -f "$DATA/meta/info.json" ]; then
   echo "== record $EPISODES episodes, sigma=$SIGMA ($MODE) =="
   $BIN/bcrl-record --repo_id="local/lift_${MODE}_sigma${SIGMA}" --root="$DATA" --n_episodes="$EPISODES" \
-    --sigma="$SIGMA" --seed=0 --images="$IMAGES" --overwrite=true
+    --sigma="$SIGMA" --seed=0 --images="$IMAGES" --overwrite=true $RECORD_ARGS
 fi
 BC_CKPT="$OUT/bc/checkpoints/last/pretrained_model"
 if [ ! -d "$BC_CKPT" ]; then
