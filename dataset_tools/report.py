@@ -41,12 +41,17 @@ def wilson_ci95(successes: int, n: int) -> tuple[float, float]:
 def demonstrators(repo_id: str, root: str) -> dict:
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
+    """The demonstrators' return and success; episodes with a planned miss (bcrl-record --miss_probability)
+    are left out, so that the bar is the noisy demonstrators' own, not one lowered by the misses."""
     episodes = LeRobotDatasetMetadata(repo_id, root=root).episodes
-    returns = list(episodes["episode_return"])
+    planned = np.asarray(episodes["planned_miss"], dtype=bool) if "planned_miss" in episodes.column_names else None
+    keep = ~planned if planned is not None else np.ones(len(episodes["episode_return"]), dtype=bool)
+    returns = np.asarray(episodes["episode_return"], dtype=float)[keep]
     sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
-    mean, ci = mean_ci95(returns)
+    success = np.asarray(episodes["success"], dtype=bool)[keep] if "success" in episodes.column_names else None
+    mean, ci = mean_ci95(list(returns))
     return {"sigma": sigma, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
-            "demo_success": float(np.mean(episodes["success"])) if "success" in episodes.column_names else float("nan")}
+            "demo_success": float(np.mean(success)) if success is not None else float("nan")}
 
 
 def success_rate(episodes: list[dict]) -> tuple[float, tuple[float, float]]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
-from dataset_tools.report import ReportConfig, report, trailing_mean, wilson_ci95
+from dataset_tools.report import ReportConfig, demonstrators, report, trailing_mean, wilson_ci95
 from lerobot_bcrl.rl.ppo import LOG_COLUMNS
 
 
@@ -70,6 +70,26 @@ def test_runs_on_one_dataset_share_a_row_however_its_root_was_spelled(lowdim_dat
     assert {r["dataset_root"] for r in result["rows"]} == {str(lowdim_dataset_root.resolve())}
     table_1 = (tmp_path / "report" / "report.md").read_text().split("Table 2")[0]
     assert len([line for line in table_1.splitlines() if line.startswith("| 0")]) == 1, table_1
+
+
+def test_demonstrators_return_leaves_out_planned_misses(lowdim_dataset_root, tmp_path):
+    import shutil
+
+    import pandas as pd
+
+    root = tmp_path / "with_misses"
+    shutil.copytree(lowdim_dataset_root, root)
+    (path,) = sorted((root / "meta" / "episodes").rglob("*.parquet"))
+    episodes = pd.read_parquet(path)
+    assert len(episodes) >= 2
+    all_episodes = demonstrators("local/with_misses", str(root))
+    assert all_episodes["demo_return"] == pytest.approx(episodes["episode_return"].mean())
+    episodes["planned_miss"] = [True] + [False] * (len(episodes) - 1)
+    episodes.loc[0, "episode_return"] = -1000.0  # a miss's return must not pull the bar down
+    episodes.to_parquet(path, index=False)
+    demo = demonstrators("local/with_misses", str(root))
+    assert demo["demo_episodes"] == len(episodes) - 1
+    assert demo["demo_return"] == pytest.approx(episodes["episode_return"][1:].mean())
 
 
 def test_trailing_mean_matches_a_loop():
