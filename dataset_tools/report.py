@@ -39,13 +39,15 @@ def wilson_ci95(successes: int, n: int) -> tuple[float, float]:
 
 
 def demonstrators(repo_id: str, root: str) -> dict:
+    """The demonstrators' return and success; episodes with a planned miss (bcrl-record --miss_probability)
+    are left out (unless every episode has one), so that the bar is the noisy demonstrators' own, not one
+    lowered by the misses."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    """The demonstrators' return and success; episodes with a planned miss (bcrl-record --miss_probability)
-    are left out, so that the bar is the noisy demonstrators' own, not one lowered by the misses."""
     episodes = LeRobotDatasetMetadata(repo_id, root=root).episodes
-    planned = np.asarray(episodes["planned_miss"], dtype=bool) if "planned_miss" in episodes.column_names else None
-    keep = ~planned if planned is not None else np.ones(len(episodes["episode_return"]), dtype=bool)
+    keep = np.ones(len(episodes["episode_return"]), dtype=bool)
+    if "planned_miss" in episodes.column_names and not np.all(episodes["planned_miss"]):
+        keep = ~np.asarray(episodes["planned_miss"], dtype=bool)
     returns = np.asarray(episodes["episode_return"], dtype=float)[keep]
     sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
     success = np.asarray(episodes["success"], dtype=bool)[keep] if "success" in episodes.column_names else None

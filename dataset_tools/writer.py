@@ -97,7 +97,8 @@ def check_episode(frames: dict[str, np.ndarray], source: str, episode_index: int
 def write_episode(dataset, frames: dict[str, np.ndarray], task: str, source: str) -> None:
     """Add one whole episode (every feature as a (T, ...) array, aux grasp labels derived) and save it.
 
-    `aux.imitate` defaults to True on every frame (no planned mistakes)."""
+    `aux.imitate` defaults to True on every frame (no planned mistakes).
+    """
     frames = dict(frames)
     frames.setdefault(F.AUX_IMITATE_KEY, np.ones((len(frames[F.ACTION_KEY]), 1), dtype=bool))
     grasp_pos, grasp_valid = aux_labels(

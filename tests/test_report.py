@@ -90,6 +90,9 @@ def test_demonstrators_return_leaves_out_planned_misses(lowdim_dataset_root, tmp
     demo = demonstrators("local/with_misses", str(root))
     assert demo["demo_episodes"] == len(episodes) - 1
     assert demo["demo_return"] == pytest.approx(episodes["episode_return"][1:].mean())
+    episodes["planned_miss"] = True  # nothing else to compare with: every episode counts
+    episodes.to_parquet(path, index=False)
+    assert demonstrators("local/with_misses", str(root))["demo_episodes"] == len(episodes)
 
 
 def test_trailing_mean_matches_a_loop():
