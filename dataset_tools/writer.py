@@ -52,7 +52,9 @@ def atomic_dataset_dir(root: Path, overwrite: bool = False) -> Iterator[Path]:
     os.replace(tmp_root, root)
 
 
-def aux_labels(eef_pos: np.ndarray, gripper: np.ndarray, imitate: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def aux_labels(
+    eef_pos: np.ndarray, gripper: np.ndarray, imitate: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Grasp position: the EEF position where the gripper first starts closing, for every frame.
 
     A closing that starts on a planned-mistake frame (`imitate` False: a first grasp missed on purpose) is
