@@ -68,7 +68,11 @@ class ScriptedLiftExpert:
         self._descend_count = 0
         self._cube_start_pos: np.ndarray | None = None
         self._miss_offset_m = None if miss_offset_m is None else np.asarray(miss_offset_m, dtype=np.float64)
-        self.acting_on_planned_miss = False
+
+    @property
+    def acting_on_planned_miss(self) -> bool:
+        """Whether the last action was part of the planned miss (the miss ends when its closing is done)."""
+        return self._miss_offset_m is not None
 
     def act(self, observation: dict) -> np.ndarray:
         state = np.asarray(observation["agent_pos"], dtype=np.float64)
@@ -79,9 +83,10 @@ class ScriptedLiftExpert:
             self._cube_start_pos = cube_pos.copy()
 
         miss_offset = self._miss_offset_m if self._miss_offset_m is not None else np.zeros(3)
+        hover = cube_pos + [miss_offset[0], miss_offset[1], self.hover_height_m]
         gripper = geometry.GRIPPER_OPEN
         if self.phase == Phase.APPROACH:
-            target = cube_pos + [0.0, 0.0, self.hover_height_m] + miss_offset * [1.0, 1.0, 0.0]
+            target = hover
             if np.linalg.norm((target - eef_pos)[:2]) < 0.008 and abs(target[2] - eef_pos[2]) < 0.02:
                 self.phase = Phase.DESCEND
         if self.phase == Phase.DESCEND:
@@ -90,7 +95,7 @@ class ScriptedLiftExpert:
             if np.linalg.norm((target - eef_pos)[:2]) > 0.02:  # pushed the cube: hover again
                 self.phase = Phase.APPROACH
                 self._descend_count = 0
-                target = cube_pos + [0.0, 0.0, self.hover_height_m] + miss_offset * [1.0, 1.0, 0.0]
+                target = hover
             elif abs(target[2] - eef_pos[2]) < 0.01 or self._descend_count >= self.max_descend_steps:
                 self.phase = Phase.CLOSE
         if self.phase == Phase.CLOSE:
@@ -108,8 +113,6 @@ class ScriptedLiftExpert:
                 self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN
 
-        # This action is part of the miss if the miss is still planned once the phase is settled.
-        self.acting_on_planned_miss = self._miss_offset_m is not None
         delta_pos_m = self.position_gain * (target - eef_pos)
         delta_quat = self._yaw_alignment(eef_quat, cube_quat) if self.phase <= Phase.DESCEND else None
         if delta_quat is None:
