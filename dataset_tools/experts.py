@@ -14,7 +14,7 @@ import numpy as np
 
 from lerobot_bcrl import geometry
 from lerobot_bcrl.envs import controller
-from lerobot_bcrl.features import STATE_EEF_POS, STATE_EEF_QUAT
+from lerobot_bcrl.features import STATE_EEF_POS, STATE_EEF_QUAT, STATE_GRIPPER_QPOS
 
 
 class Expert(Protocol):
@@ -30,6 +30,7 @@ class Phase(IntEnum):
     DESCEND = 1
     CLOSE = 2
     LIFT = 3
+    REOPEN = 4  # the fingers closed on nothing: open in place, then descend again
 
 
 # A planned miss closes the first grasp this much above the grasp point (uniform in the range) and up to
@@ -37,13 +38,25 @@ class Phase(IntEnum):
 # cube left behind (the expert's "dropped it" rule) and retry.
 MISS_HEIGHT_RANGE_M = (0.03, 0.045)
 MISS_MAX_ASIDE_M = 0.015
+# Sawyer's two finger joints read about +0.011 / -0.011 open; holding the Lift cube their difference stays
+# above ~0.002, while fingers closed on nothing cross over to about -0.017.
+EMPTY_GRASP_FINGER_GAP = -0.008
 
 
-def sample_miss_offset(rng: np.random.Generator) -> np.ndarray:
+def sample_miss_offset(
+    rng: np.random.Generator,
+    height_range_m: tuple[float, float] = MISS_HEIGHT_RANGE_M,
+    max_aside_m: float = MISS_MAX_ASIDE_M,
+) -> np.ndarray:
     """Where a planned miss closes, relative to the grasp point (metres, world frame)."""
     angle = rng.uniform(0.0, 2 * np.pi)
-    aside = MISS_MAX_ASIDE_M * np.sqrt(rng.uniform())  # uniform over the disc
-    return np.array([aside * np.cos(angle), aside * np.sin(angle), rng.uniform(*MISS_HEIGHT_RANGE_M)])
+    aside = max_aside_m * np.sqrt(rng.uniform())  # uniform over the disc
+    return np.array([aside * np.cos(angle), aside * np.sin(angle), rng.uniform(*height_range_m)])
+
+
+def fingers_closed_on_nothing(gripper_qpos: np.ndarray) -> bool:
+    """Whether the two finger joints have closed past each other, i.e. with no object between them."""
+    return float(gripper_qpos[0] - gripper_qpos[1]) < EMPTY_GRASP_FINGER_GAP
 
 
 @dataclass
@@ -52,6 +65,9 @@ class ScriptedLiftExpert:
 
     `reset(miss_offset_m=...)` plans a miss: the first grasp closes that far from the grasp point, then the
     expert retries as after a drop. While it acts out the miss, `acting_on_planned_miss` is True.
+
+    With `reopen_on_empty_grasp` the expert checks its fingers once closed: closed on nothing, it opens
+    where it is and descends again, at any height, instead of lifting until the cube is left 4 cm behind.
     """
 
     hover_height_m: float = 0.06  # above the cube centre before descending
@@ -61,11 +77,13 @@ class ScriptedLiftExpert:
     close_steps: int = 8  # control steps spent closing the gripper
     position_gain: float = 2.0  # commanded delta per metre of error (OSC covers ~1/4 of a command per step)
     yaw_gain: float = 1.0  # fraction of the yaw error commanded per step
+    reopen_on_empty_grasp: bool = False
 
     def reset(self, miss_offset_m: np.ndarray | None = None) -> None:
         self.phase = Phase.APPROACH
         self._close_count = 0
         self._descend_count = 0
+        self._reopen_count = 0
         self._cube_start_pos: np.ndarray | None = None
         self._miss_offset_m = None if miss_offset_m is None else np.asarray(miss_offset_m, dtype=np.float64)
 
@@ -78,6 +96,7 @@ class ScriptedLiftExpert:
         state = np.asarray(observation["agent_pos"], dtype=np.float64)
         env_state = np.asarray(observation["environment_state"], dtype=np.float64)
         eef_pos, eef_quat = state[STATE_EEF_POS], state[STATE_EEF_QUAT]
+        empty_grasp = self.reopen_on_empty_grasp and fingers_closed_on_nothing(state[STATE_GRIPPER_QPOS])
         cube_pos, cube_quat = env_state[0:3], env_state[3:7]
         if self._cube_start_pos is None:
             self._cube_start_pos = cube_pos.copy()
@@ -85,6 +104,12 @@ class ScriptedLiftExpert:
         miss_offset = self._miss_offset_m if self._miss_offset_m is not None else np.zeros(3)
         hover = cube_pos + [miss_offset[0], miss_offset[1], self.hover_height_m]
         gripper = geometry.GRIPPER_OPEN
+        if self.phase == Phase.REOPEN:
+            target = eef_pos
+            self._reopen_count += 1
+            if self._reopen_count >= self.close_steps:
+                self.phase = Phase.DESCEND
+                self._descend_count = 0
         if self.phase == Phase.APPROACH:
             target = hover
             if np.linalg.norm((target - eef_pos)[:2]) < 0.008 and abs(target[2] - eef_pos[2]) < 0.02:
@@ -108,7 +133,11 @@ class ScriptedLiftExpert:
         if self.phase == Phase.LIFT:
             target = self._cube_start_pos + [0.0, 0.0, self.lift_height_m]
             gripper = geometry.GRIPPER_CLOSED
-            if np.linalg.norm(cube_pos - eef_pos) > 0.04:  # dropped it: start over
+            if empty_grasp:  # closed on nothing: open here and descend again
+                self.phase = Phase.REOPEN
+                self._close_count = self._reopen_count = 0
+                target, gripper = eef_pos, geometry.GRIPPER_OPEN
+            elif np.linalg.norm(cube_pos - eef_pos) > 0.04:  # dropped it: start over
                 self.phase = Phase.APPROACH
                 self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN

@@ -21,7 +21,14 @@ from tqdm import tqdm
 from lerobot_bcrl import features as F
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.geometry import delta_action_from_poses
-from dataset_tools.experts import Expert, PolicyExpert, ScriptedLiftExpert, sample_miss_offset
+from dataset_tools.experts import (
+    MISS_HEIGHT_RANGE_M,
+    MISS_MAX_ASIDE_M,
+    Expert,
+    PolicyExpert,
+    ScriptedLiftExpert,
+    sample_miss_offset,
+)
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise, beta_demonstrators
 from dataset_tools.summary import print_summary, summarize
 from dataset_tools.writer import (
@@ -56,6 +63,11 @@ class RecordConfig:
     # Share of episodes (scripted expert) whose first grasp is a planned miss, then a retry: recoveries that
     # first-try demonstrations never show. The miss's frames get aux.imitate = False (BC skips them).
     miss_probability: float = 0.0
+    miss_height_range_m: tuple[float, float] = MISS_HEIGHT_RANGE_M  # how far above the grasp point a miss closes
+    miss_max_aside_m: float = MISS_MAX_ASIDE_M  # and how far aside (uniform over the disc)
+    # The scripted expert checks its fingers after closing: closed on nothing, it opens where it is and
+    # descends again (the recovery then starts from low, closed-on-air states too, not only after a rise).
+    reopen_on_empty_grasp: bool = False
     images: bool = True  # record the agentview camera (False: low-dim dataset)
     video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
     image_size: int = 128
@@ -70,6 +82,14 @@ class RecordConfig:
             raise ValueError(f"miss_probability must be in [0, 1], got {self.miss_probability}")
         if self.miss_probability > 0 and self.expert != "scripted":
             raise ValueError("miss_probability needs the scripted expert (a policy expert cannot plan a miss)")
+        low, high = self.miss_height_range_m
+        if not 0.0 <= low <= high or self.miss_max_aside_m < 0.0:
+            raise ValueError(
+                f"miss_height_range_m must be [low, high] with 0 <= low <= high and miss_max_aside_m >= 0, "
+                f"got {list(self.miss_height_range_m)} and {self.miss_max_aside_m}"
+            )
+        if self.reopen_on_empty_grasp and self.expert != "scripted":
+            raise ValueError("reopen_on_empty_grasp is a behaviour of the scripted expert")
 
     def resolved_demonstrators(self) -> list[DemonstratorConfig]:
         if self.demonstrators:
@@ -82,7 +102,7 @@ class RecordConfig:
 
 def make_expert(cfg: RecordConfig) -> Expert:
     if cfg.expert == "scripted":
-        return ScriptedLiftExpert()
+        return ScriptedLiftExpert(reopen_on_empty_grasp=cfg.reopen_on_empty_grasp)
     return PolicyExpert(cfg.expert, device=cfg.device)
 
 
@@ -183,7 +203,9 @@ def record(cfg: RecordConfig) -> Path:
                     env_seed = cfg.seed + episode_index
                     # Its own stream, so that miss_probability = 0 records the same episodes as before.
                     miss_rng = np.random.default_rng([cfg.seed, episode_index, 1])
-                    miss = sample_miss_offset(miss_rng) if miss_rng.uniform() < cfg.miss_probability else None
+                    miss = None
+                    if miss_rng.uniform() < cfg.miss_probability:
+                        miss = sample_miss_offset(miss_rng, cfg.miss_height_range_m, cfg.miss_max_aside_m)
                     frames, stats = record_episode(env, expert, noise, env_seed, miss)
                     write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
                     rows.append(

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from dataset_tools import record as rec
+from dataset_tools.experts import ScriptedLiftExpert, fingers_closed_on_nothing
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from dataset_tools.writer import BadEpisodeError, check_episode
 from lerobot_bcrl import features as F
@@ -176,11 +177,63 @@ def test_planned_miss_is_flagged_then_retried_and_lifted(tmp_path):
     assert summary["frames_not_imitated"] == sum(episodes["n_frames_not_imitated"])
 
 
+def _miss_episode(reopen_on_empty_grasp, miss_offset_m, noise_std=0.0):
+    env = LiftEnv(obs_type="agent_pos", horizon=100)
+    try:
+        expert = ScriptedLiftExpert(reopen_on_empty_grasp=reopen_on_empty_grasp)
+        noise = DemonstratorNoise(DemonstratorConfig(noise_std=noise_std), 7, [0, 3])
+        return rec.record_episode(env, expert, noise, 103, miss_offset_m)
+    finally:
+        env.close()
+
+
+def _first_reopen(frames):
+    """Index of the first open command after the first close."""
+    closed = frames[F.ACTION_KEY][:, 7] > 0
+    first_close = int(np.argmax(closed))
+    return first_close + int(np.argmax(~closed[first_close:]))
+
+
+def test_empty_grasp_check_reopens_low_where_the_rise_rule_lifts_first():
+    # closes on air beside the cube, 1.5 cm above its centre (found by sampling the wide, low miss range)
+    offset = np.array([0.029, -0.013, 0.015])
+    checked, checked_stats = _miss_episode(True, offset)
+    unchecked, _ = _miss_episode(False, offset)
+    for frames in (checked, unchecked):
+        miss = np.flatnonzero(~frames[F.AUX_IMITATE_KEY][:, 0])
+        assert miss[0] == 0 and np.all(np.diff(miss) == 1)
+        assert int(np.argmax(frames[F.ACTION_KEY][:, 7] > 0)) in miss  # the air close is the miss
+    reopen, reopen_unchecked = _first_reopen(checked), _first_reopen(unchecked)
+    gripper_qpos = checked[F.STATE_KEY][reopen, F.STATE_GRIPPER_QPOS]
+    assert fingers_closed_on_nothing(gripper_qpos)  # it opened because the fingers met nothing
+    eef_above_cube = checked[F.STATE_KEY][:, 2] - checked[F.ENV_STATE_KEY][:, 2]
+    eef_above_cube_unchecked = unchecked[F.STATE_KEY][:, 2] - unchecked[F.ENV_STATE_KEY][:, 2]
+    assert eef_above_cube[reopen] < 0.025  # reopened low, where it closed
+    assert eef_above_cube_unchecked[reopen_unchecked] > eef_above_cube[reopen] + 0.005  # the old rule rose first
+    assert reopen < reopen_unchecked
+    assert checked_stats["success"] and checked_stats["steps_to_lift"] > reopen  # then grasped and lifted
+
+
+def test_empty_grasp_check_leaves_a_held_grasp_alone():
+    """Without a miss the fingers close on the cube: with or without the check, the same episode."""
+    checked, stats = _miss_episode(True, None, noise_std=0.1)
+    unchecked, _ = _miss_episode(False, None, noise_std=0.1)
+    assert stats["success"]
+    np.testing.assert_array_equal(checked[F.ACTION_KEY], unchecked[F.ACTION_KEY])
+    np.testing.assert_array_equal(checked[F.STATE_KEY], unchecked[F.STATE_KEY])
+
+
 def test_planned_misses_need_the_scripted_expert_and_a_probability():
     with pytest.raises(ValueError, match="miss_probability must be in"):
         rec.RecordConfig(miss_probability=1.5)
     with pytest.raises(ValueError, match="scripted expert"):
         rec.RecordConfig(miss_probability=0.2, expert="outputs/some/pretrained_model")
+    with pytest.raises(ValueError, match=r"miss_height_range_m must be .*got \[0.05, 0.01\]"):
+        rec.RecordConfig(miss_height_range_m=(0.05, 0.01))
+    with pytest.raises(ValueError, match="miss_max_aside_m >= 0"):
+        rec.RecordConfig(miss_max_aside_m=-0.01)
+    with pytest.raises(ValueError, match="reopen_on_empty_grasp is a behaviour of the scripted expert"):
+        rec.RecordConfig(reopen_on_empty_grasp=True, expert="outputs/some/pretrained_model")
 
 
 def test_correlated_noise_statistics():
