@@ -75,7 +75,9 @@ def summarize_run(run_dir: Path) -> dict:
     sampled_rate, sampled_ci95 = success_rate(sampled) if sampled else (None, None)
     return {
         "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
-        "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"], "env_steps": result["env_steps"], **demo,
+        "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"],
+        # an evaluated fine-tuning checkpoint (--total_env_steps=0) counts the env steps it was trained with
+        "env_steps": result["env_steps"] + result.get("policy_env_steps", 0), **demo,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
         "success": success, "success_ci95": success_ci95,
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
@@ -143,6 +145,9 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    thousands = FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0")  # 300k, not 300000 running into 250000
 
     figures = {
         "return_success.png": [("train_return", "train return"), ("eval_return", "eval return (deterministic)"),
@@ -164,6 +169,7 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
                             marker="." if key.startswith("eval") else None)
             ax.set_title(title if window <= 1 else f"{title} (mean of {window} iterations)", fontsize=9)
             ax.set_xlabel("env steps")
+            ax.xaxis.set_major_formatter(thousands)
             ax.grid(alpha=0.3)
         handles, labels = axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)

@@ -20,10 +20,11 @@ def episode_dicts(returns: list[float]) -> list[dict]:
 
 
 def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int,
-             sampled_returns: list[float] | None = None) -> Path:
+             sampled_returns: list[float] | None = None, policy_env_steps: int = 0) -> Path:
     run_dir.mkdir(parents=True)
     result = {"method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
-              "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episode_dicts(returns)}
+              "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episode_dicts(returns),
+              "policy_env_steps": policy_env_steps}
     if sampled_returns is not None:
         result["episodes_sampled"] = episode_dicts(sampled_returns)
     (run_dir / "eval_final.json").write_text(json.dumps(result))
@@ -40,10 +41,14 @@ def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lo
     bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0, 0.0, 200.0, 100.0], 0)
     bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 300.0, 0.0, 300.0], 2560,
                     sampled_returns=[300.0, 0.0, 0.0, 0.0])
-    result = report(ReportConfig(runs=[str(bc), str(bcrl)], output_dir=tmp_path / "report", smooth=3))
+    # an evaluation-only run (--total_env_steps=0) of a checkpoint fine-tuned for 1024 env steps
+    evaluated = fake_run(tmp_path / "evaluated", lowdim_dataset_root, "BC+RL (checkpoint)", [300.0], 0,
+                         policy_env_steps=1024)
+    result = report(ReportConfig(runs=[str(bc), str(bcrl), str(evaluated)], output_dir=tmp_path / "report", smooth=3))
 
     rows = {r["method"]: r for r in result["rows"]}
     assert rows["BC"]["return"] == pytest.approx(100.0) and rows["BC+RL"]["return"] == pytest.approx(225.0)
+    assert [rows[m]["env_steps"] for m in ("BC", "BC+RL", "BC+RL (checkpoint)")] == [0, 2560, 1024]
     demo = rows["BC"]["demo_return"]
     assert demo > 0 and rows["BC+RL"]["recovered_pct"] == pytest.approx(100 * 225.0 / demo)
     assert rows["BC"]["success"] == 0.75 and rows["BC"]["success_ci95"] == pytest.approx(wilson_ci95(3, 4))

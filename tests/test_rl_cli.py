@@ -109,6 +109,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     assert rows["/signals/theta_t"] == 1 and rows["/signals/env_steps"] == 1
     result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
     assert result["method"] == "BC+RL" and result["env_steps"] == 256 and 0 < result["theta"] < 1
+    assert result["policy_path"] == str(bc_checkpoint) and result["policy_env_steps"] == 0  # lerobot-train's BC
     rows = list(csv.DictReader((tmp_path / "bcrl" / "logs.csv").open()))
     assert float(rows[-1]["bc_loss"]) > 0 and rows[-1]["approx_kl"] != ""  # both terms were computed
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
@@ -121,3 +122,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
                           "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",
                           f"--output_dir={tmp_path / 'eval'}")
     assert "pc_success" in eval_output
+    # evaluating the fine-tuned checkpoint alone: the result counts the env steps behind it
+    run_cli("bcrl-finetune", f"--policy.path={pretrained}", *finetune_args(lowdim_dataset_root, tmp_path / "again", 0))
+    evaluated = json.loads((tmp_path / "again" / "eval_final.json").read_text())
+    assert evaluated["env_steps"] == 0 and evaluated["policy_env_steps"] == 256

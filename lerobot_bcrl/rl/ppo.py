@@ -272,6 +272,9 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
 
 
 # ------------------------------------------------------------------------------------- checkpoints
+TRAINING_STEP_FILE = "training_step.json"
+
+
 def checkpoint_name(env_steps: int) -> str:
     return f"{env_steps:09d}"
 
@@ -299,7 +302,7 @@ def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postp
     training_step = {"env_steps": env_steps, **asdict(schedule_state), "theta": schedule_state.theta(cfg.schedule),
                      "reward_scaler": reward_scaler.state_dict() if reward_scaler else None,
                      "obs_stats": obs_stats.state_dict() if obs_stats else None}
-    (state_dir / "training_step.json").write_text(json.dumps(training_step, indent=2))
+    (state_dir / TRAINING_STEP_FILE).write_text(json.dumps(training_step, indent=2))
     if final_dir.exists():
         shutil.rmtree(final_dir)
     os.replace(tmp_dir, final_dir)
@@ -317,7 +320,18 @@ def load_training_state(checkpoint_dir: Path, optimizer) -> dict:
     state_dir = checkpoint_dir / "training_state"
     load_optimizer_state(optimizer, state_dir)
     load_rng_state(state_dir)
-    return json.loads((state_dir / "training_step.json").read_text())
+    return json.loads((state_dir / TRAINING_STEP_FILE).read_text())
+
+
+def policy_env_steps(pretrained_path: str | Path | None) -> int:
+    """Env steps of fine-tuning behind a policy: those of the bcrl-finetune checkpoint it was saved in, else 0
+    (a lerobot-train checkpoint's training state counts optimisation steps, not env steps)."""
+    if pretrained_path is None:
+        return 0
+    step_file = Path(pretrained_path).parent / "training_state" / TRAINING_STEP_FILE
+    if not step_file.exists():
+        return 0
+    return int(json.loads(step_file.read_text()).get("env_steps", 0))
 
 
 # ------------------------------------------------------------------------------------------ logging
@@ -577,7 +591,10 @@ def finetune(cfg: FinetuneConfig) -> dict:
         logger.close()
     result = {"method": cfg.method, "env_steps": env_steps, "theta": schedule_state.theta(cfg.schedule),
               "optim_step": schedule_state.optim_step, "dataset_root": str(Path(dataset.root).resolve()),
-              "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time, **final,
+              "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time,
+              # the policy this run started from, and the env steps already behind it (an evaluated checkpoint's)
+              "policy_path": str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None,
+              "policy_env_steps": policy_env_steps(cfg.policy.pretrained_path), **final,
               "episodes": [asdict(e) for e in episodes]}
     (cfg.output_dir / "eval_final.json").write_text(json.dumps(result, indent=2))
     return result
