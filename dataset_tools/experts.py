@@ -30,7 +30,6 @@ class Phase(IntEnum):
     DESCEND = 1
     CLOSE = 2
     LIFT = 3
-    REOPEN = 4  # the fingers closed on nothing: open in place, then descend again
 
 
 # A planned miss closes the first grasp this much above the grasp point (uniform in the range) and up to
@@ -66,8 +65,9 @@ class ScriptedLiftExpert:
     `reset(miss_offset_m=...)` plans a miss: the first grasp closes that far from the grasp point, then the
     expert retries as after a drop. While it acts out the miss, `acting_on_planned_miss` is True.
 
-    With `reopen_on_empty_grasp` the expert checks its fingers once closed: closed on nothing, it opens
-    where it is and descends again, at any height, instead of lifting until the cube is left 4 cm behind.
+    With `reopen_on_empty_grasp` the expert checks its fingers once closed: closed on nothing, it opens at
+    once, wherever it is, and hovers above the cube again, instead of lifting with closed fingers until the
+    cube is left 4 cm behind.
     """
 
     hover_height_m: float = 0.06  # above the cube centre before descending
@@ -83,7 +83,6 @@ class ScriptedLiftExpert:
         self.phase = Phase.APPROACH
         self._close_count = 0
         self._descend_count = 0
-        self._reopen_count = 0
         self._cube_start_pos: np.ndarray | None = None
         self._miss_offset_m = None if miss_offset_m is None else np.asarray(miss_offset_m, dtype=np.float64)
 
@@ -104,12 +103,6 @@ class ScriptedLiftExpert:
         miss_offset = self._miss_offset_m if self._miss_offset_m is not None else np.zeros(3)
         hover = cube_pos + [miss_offset[0], miss_offset[1], self.hover_height_m]
         gripper = geometry.GRIPPER_OPEN
-        if self.phase == Phase.REOPEN:
-            target = eef_pos
-            self._reopen_count += 1
-            if self._reopen_count >= self.close_steps:
-                self.phase = Phase.DESCEND
-                self._descend_count = 0
         if self.phase == Phase.APPROACH:
             target = hover
             if np.linalg.norm((target - eef_pos)[:2]) < 0.008 and abs(target[2] - eef_pos[2]) < 0.02:
@@ -133,11 +126,8 @@ class ScriptedLiftExpert:
         if self.phase == Phase.LIFT:
             target = self._cube_start_pos + [0.0, 0.0, self.lift_height_m]
             gripper = geometry.GRIPPER_CLOSED
-            if empty_grasp:  # closed on nothing: open here and descend again
-                self.phase = Phase.REOPEN
-                self._close_count = self._reopen_count = 0
-                target, gripper = eef_pos, geometry.GRIPPER_OPEN
-            elif np.linalg.norm(cube_pos - eef_pos) > 0.04:  # dropped it: start over
+            # Closed on nothing (with the check), or the cube left behind: open, hover above it again.
+            if empty_grasp or np.linalg.norm(cube_pos - eef_pos) > 0.04:
                 self.phase = Phase.APPROACH
                 self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN
