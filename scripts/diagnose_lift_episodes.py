@@ -1,6 +1,7 @@
 """Why a Lift policy fails: roll a checkpoint out on the held-out evaluation seeds and print, per episode,
 when the gripper first closed, where the cube was relative to the end effector then, how close the end
-effector got, how high the cube went and how many times the gripper closed (a retry is a second closing);
+effector got, how high the cube went, how far the end effector rose after the first closing (a stall or a
+slip), whether the fingers end closed on nothing, and how many times the gripper closed (a retry is a second closing);
 optionally with sampled actions (position and/or gripper) instead of the mean / argmax, to compare the
 policy PPO optimises with the one lerobot-eval runs.
 
@@ -16,7 +17,9 @@ import json
 import numpy as np
 import torch
 
+from dataset_tools.experts import fingers_closed_on_nothing
 from lerobot_bcrl.envs.lift import LiftEnv
+from lerobot_bcrl.features import STATE_EEF_POS, STATE_GRIPPER_QPOS
 from lerobot_bcrl.rl.agent import BCRLAgent, flatten_observation
 from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET
 
@@ -34,6 +37,7 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
     cube_start_z = float(obs["environment_state"][2])
     closed_at, cube_minus_eef_at_close, min_distance, max_cube_rise, lifted_at = None, None, np.inf, -np.inf, None
     grasp_attempts, was_closed = 0, False  # closings of the gripper (a retry after a miss is a second one)
+    eef_z_at_close, max_eef_rise_after_close = None, None  # a stall (closed, not rising) or a slip (rose without it)
     for t in range(env.horizon):
         batch = agent.observation_batch({k: v[None] for k, v in flatten_observation(obs).items()})
         with torch.no_grad():
@@ -46,15 +50,21 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
         cube_minus_eef = obs["environment_state"][7:10]
         min_distance = min(min_distance, float(np.linalg.norm(cube_minus_eef)))
         max_cube_rise = max(max_cube_rise, float(obs["environment_state"][2]) - cube_start_z)
+        eef_z = float(obs["agent_pos"][STATE_EEF_POS][2])
         if action[7] > 0 and closed_at is None:
             closed_at, cube_minus_eef_at_close = t, [round(float(x), 3) for x in cube_minus_eef]
+            eef_z_at_close, max_eef_rise_after_close = eef_z, 0.0
+        if eef_z_at_close is not None:
+            max_eef_rise_after_close = max(max_eef_rise_after_close, eef_z - eef_z_at_close)
         grasp_attempts += int(action[7] > 0 and not was_closed)
         was_closed = bool(action[7] > 0)
         if info["is_success"] and lifted_at is None:
             lifted_at = t
     return {"seed": seed, "success": lifted_at is not None, "lifted_at": lifted_at, "gripper_closed_at": closed_at,
             "cube_minus_eef_at_close_m": cube_minus_eef_at_close, "min_eef_cube_distance_m": round(min_distance, 3),
-            "max_cube_rise_m": round(max_cube_rise, 3), "grasp_attempts": grasp_attempts}
+            "max_cube_rise_m": round(max_cube_rise, 3), "grasp_attempts": grasp_attempts,
+            "max_eef_rise_after_close_m": None if max_eef_rise_after_close is None else round(max_eef_rise_after_close, 3),
+            "fingers_closed_on_nothing_at_end": fingers_closed_on_nothing(obs["agent_pos"][STATE_GRIPPER_QPOS])}
 
 
 def main() -> None:
