@@ -65,8 +65,8 @@ class RecordConfig:
     miss_probability: float = 0.0
     miss_height_range_m: tuple[float, float] = MISS_HEIGHT_RANGE_M  # how far above the grasp point a miss closes
     miss_max_aside_m: float = MISS_MAX_ASIDE_M  # and how far aside (uniform over the disc)
-    # The scripted expert checks its fingers after closing: closed on nothing, it opens where it is and
-    # descends again (the recovery then starts from low, closed-on-air states too, not only after a rise).
+    # The scripted expert checks its fingers after closing: closed on nothing, it opens at once and hovers
+    # above the cube again (the recovery then starts from low, closed-on-air states too, not only after a rise).
     reopen_on_empty_grasp: bool = False
     images: bool = True  # record the agentview camera (False: low-dim dataset)
     video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
