@@ -95,7 +95,6 @@ class ScriptedLiftExpert:
         state = np.asarray(observation["agent_pos"], dtype=np.float64)
         env_state = np.asarray(observation["environment_state"], dtype=np.float64)
         eef_pos, eef_quat = state[STATE_EEF_POS], state[STATE_EEF_QUAT]
-        empty_grasp = self.reopen_on_empty_grasp and fingers_closed_on_nothing(state[STATE_GRIPPER_QPOS])
         cube_pos, cube_quat = env_state[0:3], env_state[3:7]
         if self._cube_start_pos is None:
             self._cube_start_pos = cube_pos.copy()
@@ -127,6 +126,7 @@ class ScriptedLiftExpert:
             target = self._cube_start_pos + [0.0, 0.0, self.lift_height_m]
             gripper = geometry.GRIPPER_CLOSED
             # Closed on nothing (with the check), or the cube left behind: open, hover above it again.
+            empty_grasp = self.reopen_on_empty_grasp and fingers_closed_on_nothing(state[STATE_GRIPPER_QPOS])
             if empty_grasp or np.linalg.norm(cube_pos - eef_pos) > 0.04:
                 self.phase = Phase.APPROACH
                 self._close_count = self._descend_count = 0
