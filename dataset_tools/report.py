@@ -1,4 +1,6 @@
-"""`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2 (markdown + JSON) and PNG plots.
+"""`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2, a success table (markdown + JSON)
+and PNG plots. Runs of one method on one dataset at one env-step budget (training seeds) share a cell: the
+tables give their mean and spread, the details table every run.
 
 Demonstrators' return comes from each run's dataset (`episode_return` in the episode metadata); policy return,
 success and steps-to-lift from the run's `eval_final.json`; curves from its `logs.csv`.
@@ -76,6 +78,7 @@ def summarize_run(run_dir: Path) -> dict:
     return {
         "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
         "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"],
+        "seed": result.get("seed"),  # bcrl-finetune's --seed (runs before it was recorded: None)
         # an evaluated fine-tuning checkpoint (--total_env_steps=0) counts the env steps it was trained with
         "env_steps": result["env_steps"] + result.get("policy_env_steps", 0), **demo,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
@@ -89,36 +92,95 @@ def success_cell(success: float, ci95: tuple[float, float]) -> str:
     return f"{100 * success:.0f} % ({max(0.0, 100 * low):.0f}-{min(100.0, 100 * high):.0f})"
 
 
-def markdown_tables(rows: list[dict]) -> str:
-    # One table row per dataset (a sigma may have several datasets, e.g. a small demo and a full one).
-    sigmas = sorted({(r["sigma"], r["dataset_root"]) for r in rows})
-    by_key = {((r["sigma"], r["dataset_root"]), r["method"]): r for r in rows}
-    methods = [m for m in METHOD_ORDER if any(r["method"] == m for r in rows)]
-    methods += sorted({r["method"] for r in rows} - set(methods))
+def column_key(row: dict) -> tuple[str, int]:
+    return row["method"], row["env_steps"]
+
+
+def column_headers(rows: list[dict]) -> dict[tuple[str, int], str]:
+    """One column per (method, env steps): a method measured at several budgets (a run and its checkpoint
+    evaluated at 192k, say) gets a column per budget instead of one run silently hiding the other."""
+    keys = sorted({column_key(r) for r in rows}, key=lambda k: (
+        METHOD_ORDER.index(k[0]) if k[0] in METHOD_ORDER else len(METHOD_ORDER), k[0], k[1]))
+    budgets = {method: {steps for m, steps in keys if m == method} for method, _ in keys}
+    return {(m, steps): m if len(budgets[m]) == 1 else f"{m}, {steps / 1000:g}k" for m, steps in keys}
+
+
+def aggregate_cell(runs: list[dict]) -> dict:
+    """Runs of one method on one dataset at one budget (several training seeds): the mean of the runs' means,
+    the spread between runs, and each run's success, so a lucky seed shows as one of several."""
+    returns = [r["return"] for r in runs]
+    return {"runs": len(runs), "seeds": [r.get("seed") for r in runs], "return": float(np.mean(returns)),
+            "return_sd": float(np.std(returns, ddof=1)) if len(runs) > 1 else float("nan"),
+            "recovered_pct": float(np.mean([r["recovered_pct"] for r in runs])),
+            "recovered_pct_range": (min(r["recovered_pct"] for r in runs), max(r["recovered_pct"] for r in runs)),
+            "success": float(np.mean([r["success"] for r in runs])), "success_per_run": [r["success"] for r in runs]}
+
+
+def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
+    """Tables 1-3 (a row per dataset, a column per method and budget; a cell with several runs, i.e. seeds,
+    gives their mean and spread) and a details table with every run; also the cells, for report.json."""
+    datasets = sorted({(r["sigma"], r["dataset_root"]) for r in rows})
+    headers = column_headers(rows)
+    runs_by_cell: dict[tuple, list[dict]] = {}
+    for r in rows:
+        runs_by_cell.setdefault(((r["sigma"], r["dataset_root"]), column_key(r)), []).append(r)
+    cells = {key: aggregate_cell(runs) for key, runs in runs_by_cell.items()}
     fmt = lambda r, key: f"{r[key]:.1f} +/- {r[key + '_ci95']:.1f}"  # noqa: E731
-    lines = ["Table 1: mean return (95 % CI), sparse reward, horizon 200 (max 450)", "",
-             "| sigma | demonstrators | " + " | ".join(methods) + " |", "|---" * (len(methods) + 2) + "|"]
-    for sigma in sigmas:
-        demo = next(r for r in rows if (r["sigma"], r["dataset_root"]) == sigma)
-        cells = [fmt(by_key[sigma, m], "return") if (sigma, m) in by_key else "-" for m in methods]
-        lines.append(f"| {sigma[0]:g} | {fmt(demo, 'demo_return')} | " + " | ".join(cells) + " |")
-    lines += ["", "Table 2: % of the demonstrators' return recovered", "",
-              "| sigma | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-    for sigma in sigmas:
-        cells = [f"{by_key[sigma, m]['recovered_pct']:.0f} %" if (sigma, m) in by_key else "-" for m in methods]
-        lines.append(f"| {sigma[0]:g} | " + " | ".join(cells) + " |")
+
+    def return_cell(key) -> str:
+        if key not in cells:
+            return "-"
+        if cells[key]["runs"] == 1:
+            return fmt(runs_by_cell[key][0], "return")
+        return f"{cells[key]['return']:.1f} (sd {cells[key]['return_sd']:.1f}, {cells[key]['runs']} runs)"
+
+    def recovered_cell(key) -> str:
+        if key not in cells:
+            return "-"
+        cell = cells[key]
+        low, high = cell["recovered_pct_range"]
+        return f"{cell['recovered_pct']:.0f} %" + (f" ({low:.0f}-{high:.0f})" if cell["runs"] > 1 else "")
+
+    def success_table_cell(key) -> str:
+        if key not in cells:
+            return "-"
+        if cells[key]["runs"] == 1:
+            run = runs_by_cell[key][0]
+            return success_cell(run["success"], run["success_ci95"])
+        per_run = ", ".join(f"{100 * s:.0f}" for s in cells[key]["success_per_run"])
+        return f"{100 * cells[key]['success']:.0f} % (runs: {per_run})"
+
+    lines = []
+    for title, first_columns, cell_text in (
+        ("Table 1: mean return (95 % CI; over several runs: their mean and sd), sparse reward, horizon 200 (max 450)",
+         lambda demo: [f"{demo['sigma']:g}", fmt(demo, "demo_return")], return_cell),
+        ("Table 2: % of the demonstrators' return recovered (over several runs: their mean, min-max)",
+         lambda demo: [f"{demo['sigma']:g}"], recovered_cell),
+        ("Table 3: success (95 % Wilson interval; over several runs: their mean, and each run's)",
+         lambda demo: [f"{demo['sigma']:g}", f"{100 * demo['demo_success']:.0f} %"], success_table_cell),
+    ):
+        demo_columns = ["sigma", "demonstrators"][: len(first_columns(rows[0]))]
+        lines += ([title, ""] if not lines else ["", title, ""])
+        lines += ["| " + " | ".join(demo_columns + list(headers.values())) + " |",
+                  "|---" * (len(demo_columns) + len(headers)) + "|"]
+        for dataset in datasets:
+            demo = next(r for r in rows if (r["sigma"], r["dataset_root"]) == dataset)
+            lines.append("| " + " | ".join(first_columns(demo) + [cell_text((dataset, k)) for k in headers]) + " |")
     any_sampled = any(r["sampled_success"] is not None for r in rows)
-    lines += ["", "Details", "", "| sigma | method | env steps | episodes | return (95 % CI) | % recovered | success (95 % CI) |"
-              + (" success, sampled actions |" if any_sampled else "") + " steps to lift | run |",
-              "|---" * (9 + any_sampled) + "|"]
-    for r in sorted(rows, key=lambda r: (r["sigma"], r["method"])):
+    lines += ["", "Details", "", "| sigma | method | env steps | seed | episodes | return (95 % CI) | % recovered |"
+              " success (95 % CI) |" + (" success, sampled actions |" if any_sampled else "") + " steps to lift | run |",
+              "|---" * (10 + any_sampled) + "|"]
+    for r in sorted(rows, key=lambda r: (r["sigma"], r["method"], r["env_steps"], str(r.get("seed")))):
         sampled_cell = ""
         if any_sampled:
             sampled_cell = f" {success_cell(r['sampled_success'], r['sampled_success_ci95'])} |" if r["sampled_success"] is not None else " - |"
-        lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {r['episodes']} | {fmt(r, 'return')} |"
+        seed = "-" if r.get("seed") is None else r["seed"]
+        lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
                      f" {r['steps_to_lift']:.1f} | `{r['run']}` |")
-    return "\n".join(lines) + "\n"
+    cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],
+                  "column": headers[key], **cell} for (dataset, key), cell in sorted(cells.items(), key=lambda kv: str(kv[0]))]
+    return "\n".join(lines) + "\n", cell_list
 
 
 def read_log(run_dir: Path) -> dict[str, np.ndarray]:
@@ -180,18 +242,24 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
     return written
 
 
+def plot_label(row: dict, rows: list[dict]) -> str:
+    """Method and sigma; the seed too where other runs would carry the same label."""
+    label = f"{row['method']} sigma={row['sigma']:g}"
+    twins = [r for r in rows if (r["method"], r["sigma"]) == (row["method"], row["sigma"])]
+    return label + (f" seed={row['seed']}" if len(twins) > 1 and row.get("seed") is not None else "")
+
+
 def report(cfg: ReportConfig) -> dict:
     run_dirs = sorted({Path(p) for pattern in cfg.runs for p in glob.glob(str(pattern)) if (Path(p) / "eval_final.json").exists()})
     if not run_dirs:
         raise FileNotFoundError(f"no finished runs (with eval_final.json) match {cfg.runs}")
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     rows = [summarize_run(d) for d in run_dirs]
-    tables = markdown_tables(rows)
+    tables, cells = markdown_tables(rows)
     (cfg.output_dir / "report.md").write_text(tables)
-    (cfg.output_dir / "report.json").write_text(json.dumps(rows, indent=2))
-    plots = plot_runs([(f"{r['method']} sigma={r['sigma']:g}", read_log(Path(r["run"]))) for r in rows], cfg.output_dir,
-                      cfg.smooth)
-    return {"rows": rows, "tables": tables, "plots": plots}
+    (cfg.output_dir / "report.json").write_text(json.dumps({"runs": rows, "cells": cells}, indent=2))
+    plots = plot_runs([(plot_label(r, rows), read_log(Path(r["run"]))) for r in rows], cfg.output_dir, cfg.smooth)
+    return {"rows": rows, "cells": cells, "tables": tables, "plots": plots}
 
 
 def main() -> None:

@@ -20,11 +20,11 @@ def episode_dicts(returns: list[float]) -> list[dict]:
 
 
 def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int,
-             sampled_returns: list[float] | None = None, policy_env_steps: int = 0) -> Path:
+             sampled_returns: list[float] | None = None, policy_env_steps: int = 0, seed: int = 1000) -> Path:
     run_dir.mkdir(parents=True)
     result = {"method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
               "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episode_dicts(returns),
-              "policy_env_steps": policy_env_steps}
+              "policy_env_steps": policy_env_steps, "seed": seed}
     if sampled_returns is not None:
         result["episodes_sampled"] = episode_dicts(sampled_returns)
     (run_dir / "eval_final.json").write_text(json.dumps(result))
@@ -75,6 +75,45 @@ def test_runs_on_one_dataset_share_a_row_however_its_root_was_spelled(lowdim_dat
     assert {r["dataset_root"] for r in result["rows"]} == {str(lowdim_dataset_root.resolve())}
     table_1 = (tmp_path / "report" / "report.md").read_text().split("Table 2")[0]
     assert len([line for line in table_1.splitlines() if line.startswith("| 0")]) == 1, table_1
+
+
+def table(tables: str, title: str) -> list[str]:
+    """The lines of one markdown table of report.md, from its title to the blank line after it."""
+    lines = tables.split(title, 1)[1].split("\n\n")[1].splitlines()
+    assert lines[0].startswith("|"), lines
+    return lines
+
+
+def test_seeds_share_a_cell_and_budgets_get_their_own_columns(lowdim_dataset_root, tmp_path):
+    runs = [fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0, 100.0, 0.0, 100.0], 0),
+            # two training seeds at 102k: one cell with their mean, not the last one read
+            fake_run(tmp_path / "seed1", lowdim_dataset_root, "BC+RL", [300.0, 300.0, 300.0, 300.0], 102400, seed=1),
+            fake_run(tmp_path / "seed2", lowdim_dataset_root, "BC+RL", [200.0, 200.0, 0.0, 0.0], 102400, seed=2),
+            # the same method at another budget: its own column
+            fake_run(tmp_path / "long", lowdim_dataset_root, "BC+RL", [250.0, 250.0, 250.0, 0.0], 297600, seed=1)]
+    result = report(ReportConfig(runs=[str(r) for r in runs], output_dir=tmp_path / "report"))
+    tables = result["tables"]
+    header, _, row = table(tables, "Table 1")
+    assert header == "| sigma | demonstrators | BC | BC+RL, 102.4k | BC+RL, 297.6k |"
+    seed_means = [300.0, 100.0]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3] == f"{np.mean(seed_means):.1f} (sd {np.std(seed_means, ddof=1):.1f}, 2 runs)"
+    assert cells[2].startswith("75.0 +/- ") and cells[4].startswith("187.5 +/- ")  # one run each: its own CI
+    demo = result["rows"][0]["demo_return"]
+    _, _, recovered = table(tables, "Table 2")
+    low, high = sorted(100 * m / demo for m in seed_means)
+    assert f"| {100 * np.mean(seed_means) / demo:.0f} % ({low:.0f}-{high:.0f}) |" in recovered
+    _, _, success = table(tables, "Table 3")
+    low, high = wilson_ci95(3, 4)
+    one_run = f"75 % ({100 * low:.0f}-{100 * high:.0f})"
+    assert [c.strip() for c in success.strip("|").split("|")][2:] == [one_run, "75 % (runs: 100, 50)", one_run]
+    cell = next(c for c in result["cells"] if c["column"] == "BC+RL, 102.4k")
+    assert cell["runs"] == 2 and cell["seeds"] == [1, 2] and cell["return"] == pytest.approx(200.0)
+    saved = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert len(saved["runs"]) == 4 and len(saved["cells"]) == 3
+    details = table(tables, "Details")
+    assert sum("| BC+RL | 102400 |" in line for line in details) == 2  # every run still listed, with its seed
+    assert any("| BC+RL | 102400 | 2 |" in line for line in details)
 
 
 def test_demonstrators_return_leaves_out_planned_misses(lowdim_dataset_root, tmp_path):

@@ -123,6 +123,8 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
                           f"--output_dir={tmp_path / 'eval'}")
     assert "pc_success" in eval_output
     # evaluating the fine-tuned checkpoint alone: the result counts the env steps behind it
-    run_cli("bcrl-finetune", f"--policy.path={pretrained}", *finetune_args(lowdim_dataset_root, tmp_path / "again", 0))
+    run_cli("bcrl-finetune", f"--policy.path={pretrained}", *finetune_args(lowdim_dataset_root, tmp_path / "again", 0),
+            "--seed=7")
     evaluated = json.loads((tmp_path / "again" / "eval_final.json").read_text())
     assert evaluated["env_steps"] == 0 and evaluated["policy_env_steps"] == 256
+    assert result["seed"] == 1000 and evaluated["seed"] == 7  # the training seed, for bcrl-report's per-seed cells

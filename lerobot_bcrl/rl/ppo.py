@@ -590,7 +590,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         workers.close()
         logger.close()
     result = {"method": cfg.method, "env_steps": env_steps, "theta": schedule_state.theta(cfg.schedule),
-              "optim_step": schedule_state.optim_step, "dataset_root": str(Path(dataset.root).resolve()),
+              "optim_step": schedule_state.optim_step, "seed": cfg.seed, "dataset_root": str(Path(dataset.root).resolve()),
               "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time,
               # the policy this run started from, and the env steps already behind it (an evaluated checkpoint's)
               "policy_path": str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None,
