@@ -127,4 +127,5 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
             "--seed=7")
     evaluated = json.loads((tmp_path / "again" / "eval_final.json").read_text())
     assert evaluated["env_steps"] == 0 and evaluated["policy_env_steps"] == 256
+    assert evaluated["method"] == "BC+RL"  # a fine-tuned checkpoint, not "BC" because this run trained nothing
     assert result["seed"] == 1000 and evaluated["seed"] == 7  # the training seed, for bcrl-report's per-seed cells

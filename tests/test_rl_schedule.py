@@ -66,7 +66,8 @@ def test_state_gives_theta_from_its_counters():
     assert state.theta(cfg) == pytest.approx(math.exp(-2))
 
 
-def test_run_label_names_the_method_and_the_floor():
+def test_run_label_names_the_method_and_the_floor(tmp_path):
+    import json
     from pathlib import Path
 
     from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
@@ -80,3 +81,9 @@ def test_run_label_names_the_method_and_the_floor():
     assert cfg.method == "BC+RL, theta_t >= 0.2"
     cfg.total_env_steps = 0
     assert cfg.method == "BC"
+    # evaluating a checkpoint bcrl-finetune trained for 192k env steps: BC+RL, whatever the schedule flags say
+    state_dir = tmp_path / "000192000" / "training_state"
+    state_dir.mkdir(parents=True)
+    (state_dir / "training_step.json").write_text(json.dumps({"env_steps": 192000}))
+    cfg.policy.pretrained_path = tmp_path / "000192000" / "pretrained_model"
+    assert cfg.method == "BC+RL"

@@ -133,8 +133,8 @@ class FinetuneConfig:
     def method(self) -> str:
         if self.label:
             return self.label
-        if self.total_env_steps == 0:
-            return "BC"
+        if self.total_env_steps == 0:  # an evaluation: of a BC checkpoint, or of one fine-tuned by bcrl-finetune
+            return "BC+RL" if self.policy.pretrained_path and policy_env_steps(self.policy.pretrained_path) else "BC"
         if not self.policy.pretrained_path:
             return "PPO from scratch"
         floor = self.schedule.floor
