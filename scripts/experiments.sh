@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The paper's experiments for one sigma, low-dim (CPU) or images (GPU): record demonstrations, BC with
 # lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
-# evaluation on the same held-out seeds), and the report (Tables 1-2, plots).
+# evaluation on the same held-out seeds), and the report (Tables 1-3, plots). Another training seed:
+# BCRL_ARGS="... --seed=2" with its own OUT (bcrl-report puts runs of one cell together).
 #   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
 # Sizes come from the environment (defaults: what docs/RESULTS.md measured on 2 cores); a finished step
 # whose output exists is skipped, a killed BC+RL or scratch run resumes from its last checkpoint.
