@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The paper's experiments for one sigma, low-dim (CPU) or images (GPU): record demonstrations, BC with
 # lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
-# evaluation on the same held-out seeds), and the report (Tables 1-3, plots). Another training seed:
-# BCRL_ARGS="... --seed=2" with its own OUT (bcrl-report puts runs of one cell together).
+# evaluation on the same held-out seeds), and the report (Tables 1-3, plots). Another BC+RL training seed on
+# the same demonstrations and BC: the same command plus BCRL_NAME=bcrl_seed2 BCRL_ARGS="... --seed=2" (the
+# report takes every $OUT/bcrl* run and puts the seeds of one cell together).
 #   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
 # Sizes come from the environment (defaults: what docs/RESULTS.md measured on 2 cores); a finished step
 # whose output exists is skipped, a killed BC+RL or scratch run resumes from its last checkpoint.
@@ -24,6 +25,7 @@ SCHEDULE=${SCHEDULE:-"--schedule.alpha=640 --schedule.beta=1000 --schedule.phi=3
 # BCRL_ARGS="--policy.critic_hidden_dims=[256,256] --ppo.reset_log_std=-3.0 --rollout.envs_per_worker=8
 #   --rollout.steps_per_env=200 --ppo.minibatch_size=256" SCHEDULE="--schedule.alpha=300 --schedule.beta=500 --schedule.phi=1500"
 BCRL_ARGS=${BCRL_ARGS:-}
+BCRL_NAME=${BCRL_NAME:-bcrl}              # the BC+RL run's folder under $OUT
 # extra bcrl-record flags, e.g. RECORD_ARGS="--miss_probability=0.3" (demonstrations with planned misses and retries)
 RECORD_ARGS=${RECORD_ARGS:-}
 DATA="$OUT/data"
@@ -50,9 +52,9 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
   $BIN/bcrl-finetune "$@" $DATASET --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/$name" --resume=$resume
 }
 finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
-finetune bcrl --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
+finetune "$BCRL_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
   $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS
-RUNS="$OUT/bc_only,$OUT/bcrl"
+RUNS="$OUT/bc_only,$OUT/bcrl*"  # every BC+RL run here: seeds, continuations
 if [ "$SCRATCH_STEPS" != 0 ]; then
   finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
     --total_env_steps="$SCRATCH_STEPS" --rollout.n_workers=2 --rollout.envs_per_worker=2 --eval_freq=20480 --eval_episodes=10
