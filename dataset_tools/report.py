@@ -151,15 +151,15 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         return f"{100 * cells[key]['success']:.0f} % (runs: {per_run})"
 
     lines = []
-    for title, first_columns, cell_text in (
+    for title, demo_columns, first_columns, cell_text in (
         ("Table 1: mean return (95 % CI; over several runs: their mean and sd), sparse reward, horizon 200 (max 450)",
-         lambda demo: [f"{demo['sigma']:g}", fmt(demo, "demo_return")], return_cell),
+         ["sigma", "demonstrators"], lambda demo: [f"{demo['sigma']:g}", fmt(demo, "demo_return")], return_cell),
         ("Table 2: % of the demonstrators' return recovered (over several runs: their mean, min-max)",
-         lambda demo: [f"{demo['sigma']:g}"], recovered_cell),
+         ["sigma"], lambda demo: [f"{demo['sigma']:g}"], recovered_cell),
         ("Table 3: success (95 % Wilson interval; over several runs: their mean, and each run's)",
-         lambda demo: [f"{demo['sigma']:g}", f"{100 * demo['demo_success']:.0f} %"], success_table_cell),
+         ["sigma", "demonstrators"], lambda demo: [f"{demo['sigma']:g}", f"{100 * demo['demo_success']:.0f} %"],
+         success_table_cell),
     ):
-        demo_columns = ["sigma", "demonstrators"][: len(first_columns(rows[0]))]
         lines += ([title, ""] if not lines else ["", title, ""])
         lines += ["| " + " | ".join(demo_columns + list(headers.values())) + " |",
                   "|---" * (len(demo_columns) + len(headers)) + "|"]
