@@ -217,7 +217,8 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
         "bc_terms.png": [("bc_loss", "BC loss"), ("bc_cosine", "cosine distance of delta_pos"),
                          ("bc_gripper_ce", "gripper CE"), ("bc_quat", "quaternion distance")],
         "theta_ppo.png": [("theta", "theta_t"), ("approx_kl", "approx KL"), ("clipfrac", "clip fraction"),
-                          ("explained_variance", "explained variance")],
+                          ("explained_variance", "explained variance"),
+                          ("bc_grad_share", "BC term's share of the policy gradient")],
     }
     written = []
     for filename, panels in figures.items():

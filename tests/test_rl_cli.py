@@ -112,6 +112,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     assert result["policy_path"] == str(bc_checkpoint) and result["policy_env_steps"] == 0  # lerobot-train's BC
     rows = list(csv.DictReader((tmp_path / "bcrl" / "logs.csv").open()))
     assert float(rows[-1]["bc_loss"]) > 0 and rows[-1]["approx_kl"] != ""  # both terms were computed
+    assert all(0 < float(row["bc_grad_share"]) <= 1 for row in rows)  # measured once per iteration
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
         assert (pretrained / name).exists(), name

@@ -121,3 +121,38 @@ def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
     mixed = _grads(policy)
     assert any(not torch.allclose(mixed[n], 0.5 * bc_grads[n]) for n in mixed)  # PPO contributes below theta = 1
     assert metrics["bc_loss"] > 0 and "policy_loss" in metrics
+
+
+def test_term_gradient_norms_weigh_each_term_by_theta(lowdim_dataset_root):
+    """The logged gradient norms are those of theta * L_BC and (1 - theta) * L_PPO's policy term, measured
+    without touching the parameters' .grad; the BC share is 1 at theta = 1 and in between below it."""
+    from lerobot_bcrl.rl.agent import BCRLAgent
+
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    demo_batch = preprocessor(whole_dataset_batch(dataset))
+    agent = BCRLAgent(policy, preprocessor)
+    obs = {k: v for k, v in demo_batch.items() if k.startswith("observation.")}
+    with torch.no_grad():
+        actions, log_probs, _ = agent.sample(obs)
+    n = actions.shape[0]
+    minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3, "advantages": torch.randn(n),
+                 "returns": torch.randn(n)}
+    policy.zero_grad()
+    policy.forward(demo_batch)[0].backward()
+    bc_norm = float(torch.sqrt(sum((g ** 2).sum() for g in _grads(policy).values())))
+
+    policy.zero_grad()
+    _, mixed = bcrl_loss(agent, minibatch, demo_batch, theta=0.25, cfg=PPOConfig(), bc_forward=policy.forward,
+                         measure_gradients=True)
+    assert all(p.grad is None or not p.grad.any() for p in policy.parameters())  # measuring leaves .grad alone
+    assert mixed["bc_term_grad_norm"] == pytest.approx(0.25 * bc_norm, rel=1e-4)
+    assert mixed["ppo_term_grad_norm"] > 0
+    share = mixed["bc_term_grad_norm"] / (mixed["bc_term_grad_norm"] + mixed["ppo_term_grad_norm"])
+    assert mixed["bc_grad_share"] == pytest.approx(share) and 0 < share < 1
+
+    _, pure_bc = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward,
+                           measure_gradients=True)
+    assert pure_bc["ppo_term_grad_norm"] == 0 and pure_bc["bc_grad_share"] == 1.0
+    _, unmeasured = bcrl_loss(agent, minibatch, demo_batch, theta=0.25, cfg=PPOConfig(), bc_forward=policy.forward)
+    assert "bc_grad_share" not in unmeasured

@@ -180,9 +180,26 @@ def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
 
 
+def term_gradient_norms(module: torch.nn.Module, bc_term: Tensor, ppo_term: Tensor) -> dict[str, float]:
+    """Norms of the gradients of the weighted BC term and of the weighted PPO policy term (value loss left out),
+    and the BC term's share of their sum: how much theta_t weighs once each term's gradient scale counts."""
+    params = [p for p in module.parameters() if p.requires_grad]
+
+    def norm(term: Tensor) -> float:
+        if not term.requires_grad:
+            return 0.0
+        grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
+        return float(torch.sqrt(sum((g.detach() ** 2).sum() for g in grads if g is not None)))
+
+    bc_norm, ppo_norm = norm(bc_term), norm(ppo_term)
+    share = bc_norm / (bc_norm + ppo_norm) if bc_norm + ppo_norm > 0 else float("nan")
+    return {"bc_term_grad_norm": bc_norm, "ppo_term_grad_norm": ppo_norm, "bc_grad_share": share}
+
+
 def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
-              bc_forward=None) -> tuple[Tensor, dict[str, float]]:
-    """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch."""
+              bc_forward=None, measure_gradients: bool = False) -> tuple[Tensor, dict[str, float]]:
+    """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch; with
+    `measure_gradients`, also `term_gradient_norms` (two more backward passes)."""
     new_log_prob, entropy, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
     advantages = minibatch["advantages"]
     if cfg.normalize_advantages and advantages.numel() > 1:
@@ -192,6 +209,9 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
     bc_loss, bc_metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
+    gradient_metrics = {}
+    if measure_gradients:
+        gradient_metrics = term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss)
 
     if cfg.value_loss_always:
         loss = theta * bc_loss + (1 - theta) * ppo_loss + value_loss
@@ -200,8 +220,8 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
         loss = theta * bc_loss + (1 - theta) * ppo_loss
 
     metrics = {name: float(value.detach()) for name, value in ppo.items()}
-    metrics.update(bc_metrics, entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()),
-                   loss=float(loss.detach()))
+    metrics.update(bc_metrics, **gradient_metrics, entropy=float(entropy.mean().detach()),
+                   ppo_loss=float(ppo_loss.detach()), loss=float(loss.detach()))
     return loss, metrics
 
 
@@ -253,7 +273,8 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
             theta = schedule_state.theta(schedule_cfg)
             demo_batch = next(demo_batches) if (theta > 0 and demo_batches is not None) else None
 
-            loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward)
+            loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward,
+                                      measure_gradients=_epoch == 0 and start == 0)  # once per iteration
 
             optimizer.zero_grad()
             loss.backward()
@@ -339,7 +360,8 @@ LOG_COLUMNS = [
     "env_steps", "ppo_iteration", "optim_step", "theta", "learning_rate", "wall_s", "collect_s", "learn_s",
     "train_return", "train_success", "train_episodes",
     "loss", "ppo_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
-    "grad_norm", "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
+    "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share",
+    "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
     "bc_aux_eef_mse", "bc_aux_grasp_mse", "gripper_accuracy",
     "eval_return", "eval_return_ci95", "eval_success", "eval_steps_to_lift", "eval_episodes",
 ]
