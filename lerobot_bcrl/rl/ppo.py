@@ -251,30 +251,41 @@ def flatten_time_and_envs(trajectories: Trajectories, advantages: Tensor, return
     }
 
 
-def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Trajectories, rewards: np.ndarray,
-               cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
-               demo_batches=None, bc_forward=None) -> dict[str, float]:
-    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics."""
+def training_batch(trajectories: Trajectories, rewards: np.ndarray, cfg: PPOConfig) -> dict:
+    """GAE advantages and returns (time-limit truncations bootstrapped from their value), flattened to samples."""
     values = torch.as_tensor(trajectories.values)
     bootstrapped_rewards = torch.as_tensor(rewards) + cfg.gamma * torch.as_tensor(trajectories.truncation_values)
     advantages, returns = compute_gae(bootstrapped_rewards, values, torch.as_tensor(trajectories.dones),
                                       torch.as_tensor(trajectories.last_values), cfg.gamma, cfg.gae_lambda)
-    batch = flatten_time_and_envs(trajectories, advantages, returns)
+    return flatten_time_and_envs(trajectories, advantages, returns)
+
+
+def select_minibatch(agent: Agent, batch: dict, index: Tensor) -> dict:
+    """Rows `index` of a training batch, observations through the agent's preprocessing."""
+    minibatch = {key: value[index] for key, value in batch.items() if key != "obs"}
+    minibatch["obs"] = agent.observation_batch({k: v[index.numpy()] for k, v in batch["obs"].items()})
+    return minibatch
+
+
+def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Trajectories, rewards: np.ndarray,
+               cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
+               demo_batches=None, bc_forward=None) -> dict[str, float]:
+    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics."""
+    batch = training_batch(trajectories, rewards, cfg)
     batch_size = batch["actions"].shape[0]
 
     agent.module.train()
     history: dict[str, list[float]] = {}
-    for _epoch in range(cfg.update_epochs):
+    for epoch in range(cfg.update_epochs):
         permutation = torch.randperm(batch_size)
         for start in range(0, batch_size, cfg.minibatch_size):
             index = permutation[start : start + cfg.minibatch_size]
-            minibatch = {key: value[index] for key, value in batch.items() if key != "obs"}
-            minibatch["obs"] = agent.observation_batch({k: v[index.numpy()] for k, v in batch["obs"].items()})
+            minibatch = select_minibatch(agent, batch, index)
             theta = schedule_state.theta(schedule_cfg)
             demo_batch = next(demo_batches) if (theta > 0 and demo_batches is not None) else None
 
             loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward,
-                                      measure_gradients=_epoch == 0 and start == 0)  # once per iteration
+                                      measure_gradients=epoch == 0 and start == 0)  # once per iteration
 
             optimizer.zero_grad()
             loss.backward()

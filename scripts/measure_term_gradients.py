@@ -1,0 +1,77 @@
+"""How much does the BC term weigh in a BC+RL update? For a bcrl-finetune checkpoint: collect one rollout with
+its run's settings, then on each minibatch measure the gradient norms of the BC loss and of PPO's policy term,
+unweighted, and the BC term's share once weighted by the checkpoint's theta_t (`ppo.term_gradient_norms`). Runs that
+started after this script log the weighted norms and the BC share once per iteration (`logs.csv`); this
+measures checkpoints of earlier runs the same way.
+
+    MUJOCO_GL=egl OMP_NUM_THREADS=1 .venv/bin/python scripts/measure_term_gradients.py \
+        outputs/.../bcrl/checkpoints/000044800 [--rollout_seed=12345]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import draccus
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_bcrl.rl import ppo
+from lerobot_bcrl.rl.agent import BCRLAgent
+from lerobot_bcrl.rl.normalization import RewardScaler
+from lerobot_bcrl.rl.rollout import make_workers
+from lerobot_bcrl.rl.schedule import ScheduleState
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", type=Path, help="checkpoints/<step> of a bcrl-finetune run")
+    parser.add_argument("--rollout_seed", type=int, default=12345)
+    args = parser.parse_args()
+    pretrained = args.checkpoint / "pretrained_model"
+    with open(pretrained / ppo.FINETUNE_CONFIG_NAME) as f, draccus.config_type("json"):
+        cfg = draccus.load(ppo.FinetuneConfig, f)
+    training_step = json.loads((args.checkpoint / "training_state" / ppo.TRAINING_STEP_FILE).read_text())
+    theta = ScheduleState(training_step["optim_step"], training_step["ppo_iteration"]).theta(cfg.schedule)
+    torch.manual_seed(args.rollout_seed)
+    agent = BCRLAgent.from_pretrained(pretrained)
+
+    # the run's rollout: its env copies, collected inline (one process), rewards scaled as the run scaled them
+    n_envs = max(cfg.rollout.n_workers, 1) * cfg.rollout.envs_per_worker
+    kwargs = ppo.worker_kwargs(cfg, pretrained, ppo.env_gym_kwargs(cfg, agent.policy.config.uses_images), args.rollout_seed)
+    workers = make_workers(0, kwargs)
+    trajectories = workers.collect(agent.state_dict(), cfg.rollout.steps_per_env)
+    workers.close()
+    scaler = RewardScaler(cfg.ppo.gamma, n_envs)
+    if training_step.get("reward_scaler"):
+        scaler.load_state_dict(training_step["reward_scaler"])
+    rewards = scaler(trajectories.rewards, trajectories.dones) if cfg.ppo.normalize_rewards else trajectories.rewards
+    batch = ppo.training_batch(trajectories, rewards, cfg.ppo)
+
+    dataset = LeRobotDataset(cfg.dataset.repo_id, root=cfg.dataset.root)
+    demo_batches = ppo.DemoBuffer(dataset, cfg.bc_batch_size, args.rollout_seed, agent.preprocessor)
+    agent.module.train()
+    rows = []  # theta = 0.5 weighs both terms alike: twice the logged norms are the unweighted ones
+    n_samples = batch["actions"].shape[0]
+    for start in range(0, n_samples, cfg.ppo.minibatch_size):
+        index = torch.arange(start, min(start + cfg.ppo.minibatch_size, n_samples))
+        minibatch = ppo.select_minibatch(agent, batch, index)
+        _, metrics = ppo.bcrl_loss(agent, minibatch, next(demo_batches), 0.5, cfg.ppo, agent.policy.forward,
+                                   measure_gradients=True)
+        rows.append([2 * metrics["bc_term_grad_norm"], 2 * metrics["ppo_term_grad_norm"]])
+    bc_norm, ppo_norm = np.mean(rows, axis=0)
+    weighted_bc, weighted_ppo = theta * bc_norm, (1 - theta) * ppo_norm
+    print(json.dumps({
+        "checkpoint": str(args.checkpoint), "env_steps": training_step["env_steps"], "theta": round(theta, 4),
+        "rollout_success": float(np.mean([e.success for e in trajectories.episodes])) if trajectories.episodes else None,
+        "bc_grad_norm": round(bc_norm, 3), "ppo_policy_grad_norm": round(ppo_norm, 3),
+        "bc_grad_share_at_theta": round(weighted_bc / (weighted_bc + weighted_ppo), 3),
+        "theta_for_an_even_share": round(ppo_norm / (bc_norm + ppo_norm), 3),
+    }))
+
+
+if __name__ == "__main__":
+    main()
