@@ -80,19 +80,26 @@ def _grads(module) -> dict[str, torch.Tensor]:
     return {n: (p.grad.clone() if p.grad is not None else torch.zeros_like(p)) for n, p in module.named_parameters()}
 
 
-def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
+def bcrl_policy_with_batches(dataset_root):
+    """A fresh bcrl policy, its agent, the whole dataset as one demo batch, and a PPO minibatch of the policy's
+    own samples with old log-probs shifted (a ratio != 1: a real PPO gradient)."""
     from lerobot_bcrl.rl.agent import BCRLAgent
 
-    dataset = load_dataset(lowdim_dataset_root)
+    dataset = load_dataset(dataset_root)
     policy, preprocessor, _ = make_bcrl_policy(dataset)
     demo_batch = preprocessor(whole_dataset_batch(dataset))
     agent = BCRLAgent(policy, preprocessor)
     obs = {k: v for k, v in demo_batch.items() if k.startswith("observation.")}
     with torch.no_grad():
-        actions, log_probs, values = agent.sample(obs)
+        actions, log_probs, _ = agent.sample(obs)
     n = actions.shape[0]
-    minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3,  # a ratio != 1: a real PPO gradient
+    minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3,
                  "advantages": torch.randn(n), "returns": torch.randn(n)}
+    return policy, agent, demo_batch, minibatch
+
+
+def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
+    policy, agent, demo_batch, minibatch = bcrl_policy_with_batches(lowdim_dataset_root)
 
     policy.zero_grad()
     policy.forward(demo_batch)[0].backward()
@@ -126,18 +133,7 @@ def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
 def test_term_gradient_norms_weigh_each_term_by_theta(lowdim_dataset_root):
     """The logged gradient norms are those of theta * L_BC and (1 - theta) * L_PPO's policy term, measured
     without touching the parameters' .grad; the BC share is 1 at theta = 1 and in between below it."""
-    from lerobot_bcrl.rl.agent import BCRLAgent
-
-    dataset = load_dataset(lowdim_dataset_root)
-    policy, preprocessor, _ = make_bcrl_policy(dataset)
-    demo_batch = preprocessor(whole_dataset_batch(dataset))
-    agent = BCRLAgent(policy, preprocessor)
-    obs = {k: v for k, v in demo_batch.items() if k.startswith("observation.")}
-    with torch.no_grad():
-        actions, log_probs, _ = agent.sample(obs)
-    n = actions.shape[0]
-    minibatch = {"obs": obs, "actions": actions, "log_probs": log_probs + 0.3, "advantages": torch.randn(n),
-                 "returns": torch.randn(n)}
+    policy, agent, demo_batch, minibatch = bcrl_policy_with_batches(lowdim_dataset_root)
     policy.zero_grad()
     policy.forward(demo_batch)[0].backward()
     bc_norm = float(torch.sqrt(sum((g ** 2).sum() for g in _grads(policy).values())))
