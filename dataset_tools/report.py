@@ -225,16 +225,20 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
         fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
         for ax, (key, title) in zip(axes, panels):
             window = 1 if key.startswith("eval") else smooth  # evaluations are plotted as measured
-            for label, log in runs:
+            for i, (label, log) in enumerate(runs):  # a run keeps its colour in panels that others miss
                 if key in log and np.isfinite(log[key]).any():
                     mask = np.isfinite(log[key])
                     ax.plot(log["env_steps"][mask], trailing_mean(log[key][mask], window), label=label,
-                            marker="." if key.startswith("eval") else None)
+                            color=f"C{i % 10}", marker="." if key.startswith("eval") else None)
             ax.set_title(title if window <= 1 else f"{title} (mean of {window} iterations)", fontsize=9)
             ax.set_xlabel("env steps")
             ax.xaxis.set_major_formatter(thousands)
             ax.grid(alpha=0.3)
-        handles, labels = axes[0].get_legend_handles_labels()
+        legend = {}  # every run that any panel shows, once
+        for ax in axes:
+            for handle, label in zip(*ax.get_legend_handles_labels()):
+                legend.setdefault(label, handle)
+        handles, labels = list(legend.values()), list(legend)
         fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
         fig.tight_layout(rect=(0, 0.06 * ((len(labels) + 3) // 4), 1, 1))
         fig.savefig(output_dir / filename, dpi=110, bbox_inches="tight")  # long run labels: keep the legend whole
