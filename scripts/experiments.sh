@@ -3,7 +3,8 @@
 # lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
 # evaluation on the same held-out seeds), and the report (Tables 1-3, plots). Another BC+RL training seed on
 # the same demonstrations and BC: the same command plus BCRL_NAME=bcrl_seed2 BCRL_ARGS="... --seed=2" (the
-# report takes every $OUT/bcrl* run and puts the seeds of one cell together).
+# report takes every $OUT/bcrl* run and puts the seeds of one cell together); BCRL_LABEL="BC+RL, c1 0.1" names
+# a variant in the report (its runs get their own column).
 #   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
 # Sizes come from the environment (defaults: what docs/RESULTS.md measured on 2 cores); a finished step
 # whose output exists is skipped, a killed BC+RL or scratch run resumes from its last checkpoint.
@@ -26,6 +27,7 @@ SCHEDULE=${SCHEDULE:-"--schedule.alpha=640 --schedule.beta=1000 --schedule.phi=3
 #   --rollout.steps_per_env=200 --ppo.minibatch_size=256" SCHEDULE="--schedule.alpha=300 --schedule.beta=500 --schedule.phi=1500"
 BCRL_ARGS=${BCRL_ARGS:-}
 BCRL_NAME=${BCRL_NAME:-bcrl}              # the BC+RL run's folder under $OUT
+BCRL_LABEL=${BCRL_LABEL:-}                # its name in the report, spaces allowed (default: BC+RL)
 # extra bcrl-record flags, e.g. RECORD_ARGS="--miss_probability=0.3" (demonstrations with planned misses and retries)
 RECORD_ARGS=${RECORD_ARGS:-}
 DATA="$OUT/data"
@@ -53,7 +55,8 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
 }
 finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
 finetune "$BCRL_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
-  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS
+  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS \
+  ${BCRL_LABEL:+"--label=$BCRL_LABEL"}
 RUNS="$OUT/bc_only,$OUT/bcrl*"  # every BC+RL run here: seeds, continuations
 if [ "$SCRATCH_STEPS" != 0 ]; then
   finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
