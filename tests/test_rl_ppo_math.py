@@ -152,3 +152,41 @@ def test_term_gradient_norms_weigh_each_term_by_theta(lowdim_dataset_root):
     assert pure_bc["ppo_term_grad_norm"] == 0 and pure_bc["bc_grad_share"] == 1.0
     _, unmeasured = bcrl_loss(agent, minibatch, demo_batch, theta=0.25, cfg=PPOConfig(), bc_forward=policy.forward)
     assert "bc_grad_share" not in unmeasured
+
+
+def test_gradient_share_weighting_makes_theta_the_bc_share(lowdim_dataset_root):
+    """With `term_weighting="gradient_share"` L_BC is rescaled to L_PPO's policy-gradient norm, so the BC term's
+    measured share of the update is theta itself, and the resulting gradient is theta * scale * grad L_BC +
+    (1 - theta) * grad L_PPO (+ the value loss's); at theta = 0 it is pure PPO, as with "loss"."""
+    policy, agent, demo_batch, minibatch = bcrl_policy_with_batches(lowdim_dataset_root)
+    share_cfg = PPOConfig(term_weighting="gradient_share")
+    for theta in (0.9, 0.25):
+        _, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=theta, cfg=share_cfg, bc_forward=policy.forward,
+                               measure_gradients=True)
+        assert metrics["bc_grad_share"] == pytest.approx(theta, rel=1e-4)
+        _, plain = bcrl_loss(agent, minibatch, demo_batch, theta=theta, cfg=PPOConfig(), bc_forward=policy.forward,
+                             measure_gradients=True)
+        assert plain["bc_grad_share"] != pytest.approx(theta, rel=1e-2)  # the paper's weighting is not the share
+        ppo_norm = plain["ppo_term_grad_norm"] / (1 - theta)
+        assert metrics["bc_scale"] == pytest.approx(ppo_norm / (plain["bc_term_grad_norm"] / theta), rel=1e-4)
+
+    # The gradient the optimizer sees: the paper's mix plus theta * (scale - 1) * grad L_BC.
+    theta = 0.25
+    policy.zero_grad()
+    bcrl_loss(agent, minibatch, demo_batch, theta=theta, cfg=PPOConfig(), bc_forward=policy.forward)[0].backward()
+    plain_grads = _grads(policy)
+    policy.zero_grad()
+    policy.forward(demo_batch)[0].backward()
+    bc_grads = _grads(policy)
+    policy.zero_grad()
+    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=theta, cfg=share_cfg, bc_forward=policy.forward)
+    loss.backward()
+    assert abs(metrics["bc_scale"] - 1) > 0.3  # the BC term is really re-weighted here
+    for name, grad in _grads(policy).items():
+        expected = plain_grads[name] + theta * (metrics["bc_scale"] - 1) * bc_grads.get(name, torch.zeros_like(grad))
+        torch.testing.assert_close(grad, expected, rtol=1e-4, atol=1e-6, msg=name)
+
+    _, pure_ppo = bcrl_loss(agent, minibatch, demo_batch, theta=0.0, cfg=share_cfg, bc_forward=policy.forward)
+    assert "bc_scale" not in pure_ppo
+    with pytest.raises(ValueError, match="term_weighting"):
+        PPOConfig(term_weighting="share")

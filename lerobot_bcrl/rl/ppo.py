@@ -79,6 +79,15 @@ class PPOConfig:
     # (during alpha too). False: the paper's `theta * L_BC + (1 - theta) * (c1 * L_CLIP + c2 * L_VF)`, in
     # which the value head gets no gradient while theta = 1 and PPO starts on an untrained critic.
     value_loss_always: bool = True
+    # How theta_t weighs the two terms. "loss": the paper's `theta * L_BC + (1 - theta) * L_PPO`. "gradient_share":
+    # L_BC is rescaled per minibatch by ||grad L_PPO|| / ||grad L_BC|| (policy term, detached), so theta_t is the BC
+    # term's share of the policy gradient and the update keeps PPO's gradient scale (PPO's policy gradient is
+    # 2-9x the BC loss's on our Lift checkpoints: with "loss", theta_t 0.42 gave BC 8 % of the update).
+    term_weighting: str = "loss"
+
+    def __post_init__(self):
+        if self.term_weighting not in ("loss", "gradient_share"):
+            raise ValueError(f"ppo.term_weighting must be 'loss' or 'gradient_share', got {self.term_weighting!r}")
 
 
 @dataclass
@@ -180,26 +189,35 @@ def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
 
 
+def gradient_norm(module: torch.nn.Module, term: Tensor) -> float:
+    """||d term / d parameters|| without touching `.grad` (the graph is kept for the real backward pass)."""
+    if not term.requires_grad:
+        return 0.0
+    params = [p for p in module.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
+    return float(torch.sqrt(sum((g.detach() ** 2).sum() for g in grads if g is not None)))
+
+
 def term_gradient_norms(module: torch.nn.Module, bc_term: Tensor, ppo_term: Tensor) -> dict[str, float]:
     """Norms of the gradients of the weighted BC term and of the weighted PPO policy term (value loss left out),
     and the BC term's share of their sum: how much theta_t weighs once each term's gradient scale counts."""
-    params = [p for p in module.parameters() if p.requires_grad]
-
-    def norm(term: Tensor) -> float:
-        if not term.requires_grad:
-            return 0.0
-        grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
-        return float(torch.sqrt(sum((g.detach() ** 2).sum() for g in grads if g is not None)))
-
-    bc_norm, ppo_norm = norm(bc_term), norm(ppo_term)
+    bc_norm, ppo_norm = gradient_norm(module, bc_term), gradient_norm(module, ppo_term)
     share = bc_norm / (bc_norm + ppo_norm) if bc_norm + ppo_norm > 0 else float("nan")
     return {"bc_term_grad_norm": bc_norm, "ppo_term_grad_norm": ppo_norm, "bc_grad_share": share}
+
+
+def bc_gradient_scale(module: torch.nn.Module, bc_loss: Tensor, ppo_loss: Tensor) -> float:
+    """`||grad L_PPO|| / ||grad L_BC||`: the factor that gives L_BC the PPO policy term's gradient scale (1 when
+    either gradient is zero)."""
+    bc_norm, ppo_norm = gradient_norm(module, bc_loss), gradient_norm(module, ppo_loss)
+    return ppo_norm / bc_norm if bc_norm > 0 and ppo_norm > 0 else 1.0
 
 
 def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
               bc_forward=None, measure_gradients: bool = False) -> tuple[Tensor, dict[str, float]]:
     """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch; with
-    `measure_gradients`, also `term_gradient_norms` (two more backward passes)."""
+    `measure_gradients`, also `term_gradient_norms` (two more backward passes). With
+    `cfg.term_weighting == "gradient_share"`, L_BC is first rescaled by `bc_gradient_scale` (two more)."""
     new_log_prob, entropy, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
     advantages = minibatch["advantages"]
     if cfg.normalize_advantages and advantages.numel() > 1:
@@ -210,8 +228,11 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
     bc_loss, bc_metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
     gradient_metrics = {}
+    if cfg.term_weighting == "gradient_share" and theta > 0:
+        bc_scale = bc_gradient_scale(agent.module, bc_loss, ppo_loss)
+        bc_loss, gradient_metrics["bc_scale"] = bc_scale * bc_loss, bc_scale
     if measure_gradients:
-        gradient_metrics = term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss)
+        gradient_metrics.update(term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss))
 
     if cfg.value_loss_always:
         loss = theta * bc_loss + (1 - theta) * ppo_loss + value_loss
@@ -371,7 +392,7 @@ LOG_COLUMNS = [
     "env_steps", "ppo_iteration", "optim_step", "theta", "learning_rate", "wall_s", "collect_s", "learn_s",
     "train_return", "train_success", "train_episodes",
     "loss", "ppo_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
-    "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share",
+    "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",
     "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
     "bc_aux_eef_mse", "bc_aux_grasp_mse", "gripper_accuracy",
     "eval_return", "eval_return_ci95", "eval_success", "eval_steps_to_lift", "eval_episodes",
