@@ -4,6 +4,11 @@ unweighted, and the BC term's share once weighted by the checkpoint's theta_t (`
 started after this script log the weighted norms and the BC share once per iteration (`logs.csv`); this
 measures checkpoints of earlier runs the same way.
 
+It also says how much of each gradient is signal: the rollout's env copies are split into two halves (independent
+episodes), each term's gradient is averaged over each half's minibatches (BC: as many fresh demo minibatches), and
+the cosine between the halves' gradients is reported (`*_half_cosine`: ~1 when the batch pins the gradient down,
+~0 when it is sampling noise), with the cosine between the PPO and BC gradients of the whole rollout.
+
     MUJOCO_GL=egl OMP_NUM_THREADS=1 .venv/bin/python scripts/measure_term_gradients.py \
         outputs/.../bcrl/checkpoints/000044800 [--rollout_seed=12345]
 """
@@ -63,6 +68,7 @@ def main() -> None:
                                    measure_gradients=True)
         rows.append([2 * metrics["bc_term_grad_norm"], 2 * metrics["ppo_term_grad_norm"]])
     bc_norm, ppo_norm = np.mean(rows, axis=0)
+    coherence = split_half_cosines(agent, batch, n_envs, demo_batches, cfg.ppo)
     weighted_bc, weighted_ppo = theta * bc_norm, (1 - theta) * ppo_norm
     print(json.dumps({
         "checkpoint": str(args.checkpoint), "env_steps": training_step["env_steps"], "theta": round(theta, 4),
@@ -70,7 +76,29 @@ def main() -> None:
         "bc_grad_norm": round(bc_norm, 3), "ppo_policy_grad_norm": round(ppo_norm, 3),
         "bc_grad_share_at_theta": round(weighted_bc / (weighted_bc + weighted_ppo), 3),
         "theta_for_an_even_share": round(ppo_norm / (bc_norm + ppo_norm), 3),
+        **{name: round(value, 3) for name, value in coherence.items()},
     }))
+
+
+def split_half_cosines(agent, batch: dict, n_envs: int, demo_batches, ppo_cfg) -> dict[str, float]:
+    """Cosines between the mean gradients of two halves of the rollout (by env copy), per term, and between the
+    whole rollout's PPO and BC gradients."""
+    env_of_sample = torch.arange(batch["actions"].shape[0]) % n_envs  # samples are flattened time-major
+    cosine = lambda a, b: float(torch.nn.functional.cosine_similarity(a, b, dim=0))  # noqa: E731
+    means = {}
+    for half, envs_mask in (("a", env_of_sample < n_envs // 2), ("b", env_of_sample >= n_envs // 2)):
+        samples = torch.nonzero(envs_mask).squeeze(1)
+        ppo_grads, bc_grads = [], []
+        for start in range(0, len(samples), ppo_cfg.minibatch_size):
+            minibatch = ppo.select_minibatch(agent, batch, samples[start : start + ppo_cfg.minibatch_size])
+            _, _, policy_loss, _ = ppo.ppo_losses(agent, minibatch, ppo_cfg)
+            bc_loss, _ = agent.policy.forward(next(demo_batches))
+            ppo_grads.append(ppo.flat_gradient(agent.module, policy_loss))
+            bc_grads.append(ppo.flat_gradient(agent.module, bc_loss))
+        means[half] = (torch.stack(ppo_grads).mean(0), torch.stack(bc_grads).mean(0))
+    (ppo_a, bc_a), (ppo_b, bc_b) = means["a"], means["b"]
+    return {"ppo_half_cosine": cosine(ppo_a, ppo_b), "bc_half_cosine": cosine(bc_a, bc_b),
+            "ppo_bc_cosine": cosine(ppo_a + ppo_b, bc_a + bc_b)}
 
 
 if __name__ == "__main__":

@@ -189,13 +189,17 @@ def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
 
 
-def gradient_norm(module: torch.nn.Module, term: Tensor) -> float:
-    """||d term / d parameters|| without touching `.grad` (the graph is kept for the real backward pass)."""
-    if not term.requires_grad:
-        return 0.0
+def flat_gradient(module: torch.nn.Module, term: Tensor) -> Tensor:
+    """d term / d parameters as one vector (zeros where unused), without touching `.grad` (the graph is kept)."""
     params = [p for p in module.parameters() if p.requires_grad]
+    if not term.requires_grad:
+        return torch.zeros(sum(p.numel() for p in params))
     grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
-    return float(torch.sqrt(sum((g.detach() ** 2).sum() for g in grads if g is not None)))
+    return torch.cat([(torch.zeros_like(p) if g is None else g.detach()).reshape(-1) for p, g in zip(params, grads)])
+
+
+def gradient_norm(module: torch.nn.Module, term: Tensor) -> float:
+    return float(flat_gradient(module, term).norm())
 
 
 def term_gradient_norms(module: torch.nn.Module, bc_term: Tensor, ppo_term: Tensor) -> dict[str, float]:
@@ -213,18 +217,23 @@ def bc_gradient_scale(module: torch.nn.Module, bc_loss: Tensor, ppo_loss: Tensor
     return ppo_norm / bc_norm if bc_norm > 0 and ppo_norm > 0 else 1.0
 
 
-def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
-              bc_forward=None, measure_gradients: bool = False) -> tuple[Tensor, dict[str, float]]:
-    """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch; with
-    `measure_gradients`, also `term_gradient_norms` (two more backward passes). With
-    `cfg.term_weighting == "gradient_share"`, L_BC is first rescaled by `bc_gradient_scale` (two more)."""
+def ppo_losses(agent: Agent, minibatch: dict, cfg: PPOConfig) -> tuple[dict[str, Tensor], Tensor, Tensor, Tensor]:
+    """PPO's terms on one minibatch: `ppo_loss_terms`, the entropy, the weighted policy term
+    `c1 * L_CLIP - entropy_coef * H` and the weighted value loss `c2 * L_VF`."""
     new_log_prob, entropy, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
     advantages = minibatch["advantages"]
     if cfg.normalize_advantages and advantages.numel() > 1:
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     ppo = ppo_loss_terms(new_log_prob, minibatch["log_probs"], advantages, new_value, minibatch["returns"], cfg.clip_eps)
-    value_loss = cfg.c2 * ppo["value_loss"]
-    ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
+    return ppo, entropy, cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean(), cfg.c2 * ppo["value_loss"]
+
+
+def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
+              bc_forward=None, measure_gradients: bool = False) -> tuple[Tensor, dict[str, float]]:
+    """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch; with
+    `measure_gradients`, also `term_gradient_norms` (two more backward passes). With
+    `cfg.term_weighting == "gradient_share"`, L_BC is first rescaled by `bc_gradient_scale` (two more)."""
+    ppo, entropy, ppo_loss, value_loss = ppo_losses(agent, minibatch, cfg)
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
     bc_loss, bc_metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
     gradient_metrics = {}
