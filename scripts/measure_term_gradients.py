@@ -16,6 +16,7 @@ the cosine between the halves' gradients is reported (`*_half_cosine`: ~1 when t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -35,14 +36,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", type=Path, help="checkpoints/<step> of a bcrl-finetune run")
     parser.add_argument("--rollout_seed", type=int, default=12345)
+    parser.add_argument("--position_log_std", type=float, default=None,
+                        help="measure with this log-std of delta_pos instead of the checkpoint's")
     args = parser.parse_args()
     pretrained = args.checkpoint / "pretrained_model"
     with open(pretrained / ppo.FINETUNE_CONFIG_NAME) as f, draccus.config_type("json"):
         cfg = draccus.load(ppo.FinetuneConfig, f)
     training_step = json.loads((args.checkpoint / "training_state" / ppo.TRAINING_STEP_FILE).read_text())
+    # the raw norms of both terms, whichever weighting the run used
+    cfg.ppo = dataclasses.replace(cfg.ppo, term_weighting="loss")
     theta = ScheduleState(training_step["optim_step"], training_step["ppo_iteration"]).theta(cfg.schedule)
     torch.manual_seed(args.rollout_seed)
     agent = BCRLAgent.from_pretrained(pretrained)
+    if args.position_log_std is not None:
+        with torch.no_grad():
+            agent.policy.log_std[:3] = args.position_log_std
 
     # the run's rollout: its env copies, collected inline (one process), rewards scaled as the run scaled them
     n_envs = max(cfg.rollout.n_workers, 1) * cfg.rollout.envs_per_worker
@@ -71,7 +79,8 @@ def main() -> None:
     coherence = split_half_cosines(agent, batch, n_envs, demo_batches, cfg.ppo)
     weighted_bc, weighted_ppo = theta * bc_norm, (1 - theta) * ppo_norm
     print(json.dumps({
-        "checkpoint": str(args.checkpoint), "env_steps": training_step["env_steps"], "theta": round(theta, 4),
+        "checkpoint": str(args.checkpoint), "position_log_std": round(float(agent.policy.log_std[:3].mean()), 3),
+        "env_steps": training_step["env_steps"], "theta": round(theta, 4),
         "rollout_success": float(np.mean([e.success for e in trajectories.episodes])) if trajectories.episodes else None,
         "bc_grad_norm": round(bc_norm, 3), "ppo_policy_grad_norm": round(ppo_norm, 3),
         "bc_grad_share_at_theta": round(weighted_bc / (weighted_bc + weighted_ppo), 3),
