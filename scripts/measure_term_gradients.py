@@ -38,6 +38,7 @@ def main() -> None:
     parser.add_argument("--rollout_seed", type=int, default=12345)
     parser.add_argument("--position_log_std", type=float, default=None,
                         help="measure with this log-std of delta_pos instead of the checkpoint's")
+    parser.add_argument("--gae_lambda", type=float, default=None, help="advantages with this GAE lambda instead of the run's")
     args = parser.parse_args()
     pretrained = args.checkpoint / "pretrained_model"
     with open(pretrained / ppo.FINETUNE_CONFIG_NAME) as f, draccus.config_type("json"):
@@ -45,6 +46,8 @@ def main() -> None:
     training_step = json.loads((args.checkpoint / "training_state" / ppo.TRAINING_STEP_FILE).read_text())
     # the raw norms of both terms, whichever weighting the run used
     cfg.ppo = dataclasses.replace(cfg.ppo, term_weighting="loss")
+    if args.gae_lambda is not None:
+        cfg.ppo.gae_lambda = args.gae_lambda
     theta = ScheduleState(training_step["optim_step"], training_step["ppo_iteration"]).theta(cfg.schedule)
     torch.manual_seed(args.rollout_seed)
     agent = BCRLAgent.from_pretrained(pretrained)
@@ -80,6 +83,7 @@ def main() -> None:
     weighted_bc, weighted_ppo = theta * bc_norm, (1 - theta) * ppo_norm
     print(json.dumps({
         "checkpoint": str(args.checkpoint), "position_log_std": round(float(agent.policy.log_std[:3].mean()), 3),
+        "gae_lambda": cfg.ppo.gae_lambda,
         "env_steps": training_step["env_steps"], "theta": round(theta, 4),
         "rollout_success": float(np.mean([e.success for e in trajectories.episodes])) if trajectories.episodes else None,
         "bc_grad_norm": round(bc_norm, 3), "ppo_policy_grad_norm": round(ppo_norm, 3),
