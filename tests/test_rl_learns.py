@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import pytest
 import torch
 from torch import nn
 from torch.distributions import Normal
@@ -121,6 +122,26 @@ def test_process_workers_match_inline_workers():
         assert returns == [e.episode_return for e in processes.evaluate(state, seeds, {"theta_t": 0.5})]
     finally:
         inline.close()
+        processes.close()
+
+
+def test_a_dead_worker_is_named_not_a_bare_eof_error():
+    """A worker killed mid-run (e.g. by the OOM killer) gives an error naming it, its exit code and --resume."""
+    import os
+    import signal
+
+    from lerobot_bcrl.rl.rollout import ProcessWorkers
+
+    state = MLPAgent().module.state_dict()
+    kwargs = [{"make_env": ReachOrigin, "make_agent": MLPAgent, "n_envs": 1, "seed": i} for i in range(2)]
+    processes = ProcessWorkers(kwargs)
+    try:
+        processes.collect(state, 5)
+        os.kill(processes.processes[1].pid, signal.SIGKILL)
+        processes.processes[1].join(timeout=10)
+        with pytest.raises(RuntimeError, match=r"rollout worker 1 \(pid \d+\) died with exit code -9.*--resume=true"):
+            processes.collect(state, 5)
+    finally:
         processes.close()
 
 

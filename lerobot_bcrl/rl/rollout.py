@@ -262,13 +262,33 @@ class ProcessWorkers:
             process.start()
             self.connections.append(parent)
             self.processes.append(process)
-        for connection in self.connections:
-            assert connection.recv() == "ready"
+        for index in range(len(self.connections)):
+            self._receive(index)  # "ready"
+
+    def _receive(self, index: int):
+        try:
+            return self.connections[index].recv()
+        except (EOFError, ConnectionResetError):
+            self._raise_worker_died(index)
+
+    def _raise_worker_died(self, index: int):
+        """An error that says which worker died and how, instead of a bare EOFError / BrokenPipeError."""
+        process = self.processes[index]
+        process.join(timeout=5)
+        code = process.exitcode
+        how = " (SIGKILL: out of memory?)" if code == -9 else ""
+        raise RuntimeError(
+            f"rollout worker {index} (pid {process.pid}) died with exit code {code}{how}; its traceback, if it "
+            "raised one, is printed above. Continue the run from its last checkpoint with --resume=true."
+        ) from None
 
     def _call_all(self, command: str, per_worker_args: list[tuple]) -> list:
-        for connection, args in zip(self.connections, per_worker_args):
-            connection.send((command, args))
-        return [connection.recv() for connection in self.connections]
+        for index, args in enumerate(per_worker_args):
+            try:
+                self.connections[index].send((command, args))
+            except (BrokenPipeError, ConnectionResetError):
+                self._raise_worker_died(index)
+        return [self._receive(index) for index in range(len(self.connections))]
 
     def collect(self, state_dict, steps_per_env):
         state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
