@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from safetensors.torch import load_file
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
 from lerobot_bcrl.rl.schedule import ScheduleConfig, theta_at
@@ -43,7 +44,8 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     schedule = ["--schedule.type=three_phase", "--schedule.alpha=4", "--schedule.beta=10", "--schedule.phi=40"]
     args = finetune_args(lowdim_dataset_root, tmp_path / "run", 512, "--policy.type=bcrl",
                          "--policy.push_to_hub=false", "--ppo.obs_normalization=running", "--ppo.anneal_lr=true",
-                         "--ppo.learning_rate=1e-4", *schedule)
+                         "--ppo.learning_rate=1e-4", "--ppo.reset_log_std=-1.0", "--ppo.anneal_log_std_to=-3.0",
+                         *schedule)
     process = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, env=os.environ.copy())
     last = tmp_path / "run" / "checkpoints" / "last"
@@ -67,6 +69,11 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
     # the annealed learning rate follows the env step count across the kill: 1e-4 * (1 - steps before / 512)
     np.testing.assert_allclose([float(r["learning_rate"]) for r in rows], [1e-4, 7.5e-5, 5e-5, 2.5e-5])
+    # so does the annealed position log-std, -1 -> -3 over the budget; the log-std is set, not learned (the
+    # rotation's keeps its reset value through the updates)
+    np.testing.assert_allclose([float(r["position_log_std"]) for r in rows], [-1.0, -1.5, -2.0, -2.5], atol=1e-6)
+    log_std = load_file(last / "pretrained_model" / "model.safetensors")["log_std"]
+    np.testing.assert_allclose(log_std.numpy(), [-2.5] * 3 + [-5.0] * 4, atol=1e-6)
     assert "512 env steps" in output
     result = json.loads((tmp_path / "run" / "eval_final.json").read_text())  # both final evaluations, same seeds
     assert result["eval_episodes"] == result["eval_sampled_episodes"] == 1 and "with sampled actions" in output

@@ -9,7 +9,8 @@ import pytest
 import torch
 from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, whole_dataset_batch  # noqa: F401
 
-from lerobot_bcrl.rl.ppo import PPOConfig, RewardScaler, bcrl_loss, compute_gae, learning_rate_at, ppo_loss_terms
+from lerobot_bcrl.rl.ppo import (PPOConfig, RewardScaler, bcrl_loss, compute_gae, learning_rate_at, position_log_std_at,
+                                 ppo_loss_terms)
 
 
 def test_gae_matches_a_hand_computed_trajectory():
@@ -74,6 +75,16 @@ def test_annealed_learning_rate_falls_linearly_to_zero_at_the_budget():
     assert learning_rate_at(annealed, 1000, 1000) == 0.0 and learning_rate_at(annealed, 1200, 1000) == 0.0
     constant = PPOConfig(learning_rate=3e-5)
     assert learning_rate_at(constant, 0, 1000) == learning_rate_at(constant, 999, 1000) == 3e-5
+
+
+def test_annealed_position_log_std_moves_linearly_from_its_start_step_to_the_budget():
+    annealed = PPOConfig(reset_log_std=-1.5, anneal_log_std_to=-3.0, anneal_log_std_from=400)
+    assert position_log_std_at(annealed, 0, 1000) == position_log_std_at(annealed, 400, 1000) == -1.5
+    assert position_log_std_at(annealed, 700, 1000) == pytest.approx(-2.25)
+    assert position_log_std_at(annealed, 1000, 1000) == position_log_std_at(annealed, 1500, 1000) == -3.0
+    assert position_log_std_at(PPOConfig(reset_log_std=-1.5), 700, 1000) is None  # learned, not annealed
+    with pytest.raises(ValueError, match="anneal_log_std_to needs ppo.reset_log_std"):
+        PPOConfig(reset_log_std=None, anneal_log_std_to=-3.0)
 
 
 def _grads(module) -> dict[str, torch.Tensor]:

@@ -75,6 +75,11 @@ class PPOConfig:
     # ~15 degrees a step (clamped to pi/40), which the BC policy never saw.
     reset_log_std: float | None = -2.0
     reset_log_std_rotation: float | None = -5.0
+    # Anneal the exploration std of delta_pos: before each iteration the position log-std is set on the line from
+    # reset_log_std (at env step anneal_log_std_from) to anneal_log_std_to (at total_env_steps), and the log-std
+    # (rotation's too, which keeps its value) is then a schedule, not learned. None: learned from reset_log_std.
+    anneal_log_std_to: float | None = None
+    anneal_log_std_from: int = 0
     # True: `theta * L_BC + (1 - theta) * c1 * L_CLIP + c2 * L_VF`, the critic trained from the first update
     # (during alpha too). False: the paper's `theta * L_BC + (1 - theta) * (c1 * L_CLIP + c2 * L_VF)`, in
     # which the value head gets no gradient while theta = 1 and PPO starts on an untrained critic.
@@ -88,6 +93,8 @@ class PPOConfig:
     def __post_init__(self):
         if self.term_weighting not in ("loss", "gradient_share"):
             raise ValueError(f"ppo.term_weighting must be 'loss' or 'gradient_share', got {self.term_weighting!r}")
+        if self.anneal_log_std_to is not None and self.reset_log_std is None:
+            raise ValueError("ppo.anneal_log_std_to needs ppo.reset_log_std, the log-std the annealing starts from")
 
 
 @dataclass
@@ -263,6 +270,15 @@ def learning_rate_at(cfg: PPOConfig, env_steps: int, total_env_steps: int) -> fl
     return cfg.learning_rate * max(1.0 - env_steps / total_env_steps, 0.0)
 
 
+def position_log_std_at(cfg: PPOConfig, env_steps: int, total_env_steps: int) -> float | None:
+    """The position log-std of the iteration that starts after `env_steps` env steps (None: not annealed)."""
+    if cfg.anneal_log_std_to is None:
+        return None
+    span = total_env_steps - cfg.anneal_log_std_from
+    progress = 1.0 if span <= 0 else min(max((env_steps - cfg.anneal_log_std_from) / span, 0.0), 1.0)
+    return cfg.reset_log_std + (cfg.anneal_log_std_to - cfg.reset_log_std) * progress
+
+
 def low_dim_observations(trajectories: Trajectories) -> dict[str, np.ndarray]:
     """The rollout's non-image observations, (T*N, ...) per raw env key."""
     return {key: value.reshape(-1, *value.shape[2:]) for key, value in trajectories.observations.items()
@@ -398,7 +414,8 @@ def policy_env_steps(pretrained_path: str | Path | None) -> int:
 
 # ------------------------------------------------------------------------------------------ logging
 LOG_COLUMNS = [
-    "env_steps", "ppo_iteration", "optim_step", "theta", "learning_rate", "wall_s", "collect_s", "learn_s",
+    "env_steps", "ppo_iteration", "optim_step", "theta", "learning_rate", "position_log_std",
+    "wall_s", "collect_s", "learn_s",
     "train_return", "train_success", "train_episodes",
     "loss", "ppo_loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
     "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",
@@ -589,6 +606,8 @@ def finetune(cfg: FinetuneConfig) -> dict:
                 rotation_log_std = cfg.ppo.reset_log_std
             if rotation_log_std is not None:
                 policy.log_std[3:] = rotation_log_std
+    if cfg.ppo.anneal_log_std_to is not None:
+        policy.log_std.requires_grad_(False)  # a schedule, set before each iteration
 
     # The workers load config and processors once from disk; weights travel with every rollout request.
     policy_dir = cfg.output_dir / ROLLOUT_POLICY_DIR
@@ -614,6 +633,10 @@ def finetune(cfg: FinetuneConfig) -> dict:
     try:
         while env_steps < cfg.total_env_steps:
             collect_start = time.time()
+            position_log_std = position_log_std_at(cfg.ppo, env_steps, cfg.total_env_steps)
+            if position_log_std is not None:
+                with torch.no_grad():
+                    policy.log_std[:3] = position_log_std
             trajectories = workers.collect(agent.state_dict(), cfg.rollout.steps_per_env)
             learning_rate = learning_rate_at(cfg.ppo, env_steps, cfg.total_env_steps)
             for group in optimizer.param_groups:
@@ -629,7 +652,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
             row = {"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
                    "optim_step": schedule_state.optim_step, "wall_s": time.time() - start_time,
                    "collect_s": learn_start - collect_start, "learn_s": time.time() - learn_start,
-                   "learning_rate": learning_rate,
+                   "learning_rate": learning_rate, "position_log_std": float(policy.log_std[:3].mean()),
                    **metrics, **summarize_episodes(trajectories.episodes, "train")}
             row["theta"] = schedule_state.theta(cfg.schedule)  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
