@@ -16,6 +16,7 @@ from dataset_tools.record import RecordConfig
 from lerobot_bcrl.rl.ppo import FinetuneConfig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+SIGMAS = ("0", "0.01", "0.1")  # the paper's demonstrators
 
 
 def parse(cls, path: Path):
@@ -23,10 +24,10 @@ def parse(cls, path: Path):
 
 
 def test_every_config_file_is_covered():
+    tested = {f"{kind}_lift_{mode}.json" for kind in ("bc", "bcrl", "ppo_scratch") for mode in ("lowdim", "images")}
+    tested |= {f"record_sigma{sigma}.yaml" for sigma in SIGMAS} | {"record_multi_demonstrator.yaml"}
     names = {p.name for p in CONFIGS.iterdir() if p.suffix in (".json", ".yaml")}
-    covered = {p.name for p in CONFIGS.glob("bc_*.json")} | {p.name for p in CONFIGS.glob("bcrl_*.json")}
-    covered |= {p.name for p in CONFIGS.glob("ppo_scratch_*.json")} | {p.name for p in CONFIGS.glob("record_*.yaml")}
-    assert names == covered, f"configs without a test: {sorted(names - covered)}"
+    assert names == tested, f"configs without a test: {sorted(names - tested)}; tested but missing: {sorted(tested - names)}"
 
 
 @pytest.mark.parametrize("mode, observation_mode", [("lowdim", "low_dim"), ("images", "pixels")])
@@ -54,7 +55,7 @@ def test_bcrl_and_scratch_configs_load_as_finetune_configs(mode, obs_type):
     assert scratch.schedule.type == "constant" and scratch.schedule.constant_theta == 0.0
 
 
-@pytest.mark.parametrize("sigma", ["0", "0.01", "0.1"])
+@pytest.mark.parametrize("sigma", SIGMAS)
 def test_record_configs_are_the_papers_demonstrators(sigma):
     cfg = parse(RecordConfig, CONFIGS / f"record_sigma{sigma}.yaml")
     assert cfg.sigma == float(sigma) and not cfg.demonstrators
