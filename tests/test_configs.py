@@ -46,8 +46,8 @@ def test_bcrl_and_scratch_configs_load_as_finetune_configs(mode, obs_type):
     for cfg in (bcrl, scratch):
         assert cfg.env.type == "bcrl_lift" and cfg.env.obs_type == obs_type
         # the goal's budget, as run: training stops after the first whole iteration that reaches total_env_steps
-        steps_per_iteration = cfg.rollout.n_workers * cfg.rollout.envs_per_worker * cfg.rollout.steps_per_env
-        assert 0 < math.ceil(cfg.total_env_steps / steps_per_iteration) * steps_per_iteration <= 300_000
+        per_iteration = cfg.rollout.steps_per_iteration
+        assert 0 < math.ceil(cfg.total_env_steps / per_iteration) * per_iteration <= 300_000
         assert cfg.final_eval_episodes >= 50  # the report's confidence intervals need >= 50 episodes
     # BC+RL: theta_t = 1 first, then decays to 0 (three phases, alpha < phi)
     assert bcrl.schedule.type == "three_phase" and 0 < bcrl.schedule.alpha < bcrl.schedule.phi

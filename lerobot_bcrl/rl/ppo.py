@@ -103,6 +103,14 @@ class RolloutConfig:
     envs_per_worker: int = 2
     steps_per_env: int = 128  # rollout length per env per iteration
 
+    @property
+    def n_envs(self) -> int:
+        return max(self.n_workers, 1) * self.envs_per_worker
+
+    @property
+    def steps_per_iteration(self) -> int:  # env steps one PPO iteration collects; a run ends on a whole iteration
+        return self.n_envs * self.steps_per_env
+
 
 @dataclass
 class FinetuneConfig:
@@ -583,8 +591,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
     agent = BCRLAgent(policy, preprocessor)
     optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.ppo.learning_rate, eps=1e-5)
     schedule_state, env_steps = ScheduleState(), 0
-    n_envs = max(cfg.rollout.n_workers, 1) * cfg.rollout.envs_per_worker
-    reward_scaler = RewardScaler(cfg.ppo.gamma, n_envs) if cfg.ppo.normalize_rewards else None
+    reward_scaler = RewardScaler(cfg.ppo.gamma, cfg.rollout.n_envs) if cfg.ppo.normalize_rewards else None
     obs_stats = None
     if cfg.ppo.obs_normalization == "running":
         obs_stats = RunningObservationStats(find_normalizer(preprocessor), prior_count=dataset.num_frames)
@@ -620,7 +627,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
         cfg.rollout.n_workers, worker_kwargs(cfg, policy_dir, gym_kwargs, cfg.seed + 104_729 * schedule_state.ppo_iteration))
     demo_batches = DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule_state.ppo_iteration, preprocessor)
     logger = RunLogger(cfg, env_steps if cfg.resume else None)
-    steps_per_iteration = n_envs * cfg.rollout.steps_per_env
+    steps_per_iteration = cfg.rollout.steps_per_iteration
 
     def evaluate(n_episodes: int, sample: bool = False) -> tuple[dict, list[EpisodeStats]]:
         seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
