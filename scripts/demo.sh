@@ -13,8 +13,10 @@ RL_STEPS=${DEMO_RL_STEPS:-16384}
 EVAL_EPISODES=${DEMO_EVAL_EPISODES:-20}
 # With the config's 200 steps per env, a 16k-step budget is only 10 iterations: the demo keeps the shorter ones, smaller
 # minibatches and the paper's loss weighting it was measured with (docs/RESULTS.md; with the 300k recipe's
-# settings the same demo gave BC+RL 122.8 / 40 % and lerobot-eval 0/4 instead of 150.9 / 50 % and 3/4)
-DEMO_PPO_ARGS="--rollout.steps_per_env=128 --ppo.minibatch_size=128 --ppo.reset_log_std=-2.0 --ppo.term_weighting=loss"
+# settings the same demo gave BC+RL 122.8 / 40 % and lerobot-eval 0/4 instead of 150.9 / 50 % and 3/4), and the value
+# on the policy's trunk (no separate critic) it was measured with
+DEMO_PPO_ARGS="--rollout.steps_per_env=128 --ppo.minibatch_size=128 --ppo.reset_log_std=-2.0 --ppo.term_weighting=loss
+  --ppo.critic_hidden_dims=[]"
 DATA="$OUT/lift_sigma${SIGMA}_lowdim"
 DATASET="--dataset.repo_id=local/lift_sigma${SIGMA}_lowdim --dataset.root=$DATA"
 rm -rf "$OUT/bc" "$OUT/bc_only" "$OUT/bcrl" "$OUT/eval" "$OUT/report"

@@ -20,10 +20,10 @@ BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps (batch 256)
 RL_STEPS=${RL_STEPS:-297600}              # env steps of BC+RL (the goal's 300k budget, in whole iterations)
 SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: skip it)
 EVAL_EPISODES=${EVAL_EPISODES:-50}
-# extra bcrl-finetune flags for the BC+RL run; configs/bcrl_lift_${MODE}.json holds the rest of the measured recipe
-# (docs/RESULTS.md, twelfth and thirteenth sessions: gradient_share, log-std -1.5, 8 envs x 200 steps per worker,
-# schedule alpha 300 / beta 500 / phi 1500); the value's own MLP is a policy field, so it is a flag here
-BCRL_ARGS=${BCRL_ARGS:-"--policy.critic_hidden_dims=[256,256]"}
+# extra bcrl-finetune flags for the BC+RL run, e.g. "--seed=2"; configs/bcrl_lift_${MODE}.json holds the measured
+# recipe (docs/RESULTS.md, twelfth and thirteenth sessions: gradient_share, log-std -1.5, 8 envs x 200 steps per
+# worker, the value's own [256, 256] MLP, schedule alpha 300 / beta 500 / phi 1500)
+BCRL_ARGS=${BCRL_ARGS:-}
 SCHEDULE=${SCHEDULE:-}                    # schedule flags over the config's, e.g. "--schedule.alpha=640 --schedule.phi=3000"
 BCRL_NAME=${BCRL_NAME:-bcrl}              # the BC+RL run's folder under $OUT
 BCRL_LABEL=${BCRL_LABEL:-}                # its name in the report, spaces allowed (default: BC+RL)

@@ -13,7 +13,8 @@ from lerobot.configs.train import TrainPipelineConfig
 
 import lerobot_bcrl  # noqa: F401  (registers the bcrl policy and env types)
 from dataset_tools.record import RecordConfig
-from lerobot_bcrl.rl.ppo import FinetuneConfig
+from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+from lerobot_bcrl.rl.ppo import FinetuneConfig, set_critic
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SIGMAS = ("0", "0.01", "0.1")  # the paper's demonstrators
@@ -51,8 +52,25 @@ def test_bcrl_and_scratch_configs_load_as_finetune_configs(mode, obs_type):
         assert cfg.final_eval_episodes >= 50  # the report's confidence intervals need >= 50 episodes
     # BC+RL: theta_t = 1 first, then decays to 0 (three phases, alpha < phi)
     assert bcrl.schedule.type == "three_phase" and 0 < bcrl.schedule.alpha < bcrl.schedule.phi
+    # the recipe's own critic is in the file (a --policy.* field would be lost to the checkpoint's config)
+    assert bcrl.ppo.critic_hidden_dims == (256, 256)
     # PPO from scratch: no BC term at any step
     assert scratch.schedule.type == "constant" and scratch.schedule.constant_theta == 0.0
+
+
+def test_the_configs_critic_goes_onto_the_policy_or_is_refused():
+    # the demo keeps the value on the policy's trunk: an empty list parses as "no separate critic"
+    cfg = draccus.parse(FinetuneConfig, config_path=str(CONFIGS / "bcrl_lift_lowdim.json"),
+                        args=["--ppo.critic_hidden_dims=[]", "--policy.type=bcrl"])
+    assert cfg.ppo.critic_hidden_dims == ()
+    bc_policy = BCRLConfig()  # a BC checkpoint's config: no critic of its own
+    set_critic(bc_policy, None)
+    assert bc_policy.critic_hidden_dims == ()
+    set_critic(bc_policy, [256, 256])
+    assert bc_policy.critic_hidden_dims == (256, 256)
+    set_critic(bc_policy, (256, 256))  # a fine-tuned checkpoint with the same critic goes on
+    with pytest.raises(ValueError, match=r"critic_hidden_dims=\[64\].*critic_hidden_dims=\[256, 256\]"):
+        set_critic(bc_policy, (64,))
 
 
 @pytest.mark.parametrize("sigma", SIGMAS)

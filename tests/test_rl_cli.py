@@ -105,7 +105,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}",
                      *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256), "--eval_rerun=true",
-                     "--policy.critic_hidden_dims=[32]")  # a fresh separate critic on the BC checkpoint
+                     "--ppo.critic_hidden_dims=[32]")  # a fresh separate critic on the BC checkpoint
     assert "bcrl-finetune (BC+RL)" in output
     # the evaluation episode in rerun: what happened, the policy's predictions and values, and theta_t
     from lerobot_bcrl.rerun_log import read_entity_rows

@@ -89,6 +89,11 @@ class PPOConfig:
     # term's share of the policy gradient and the update keeps PPO's gradient scale (PPO's policy gradient is
     # 2-9x the BC loss's on our Lift checkpoints: with "loss", theta_t 0.42 gave BC 8 % of the update).
     term_weighting: str = "loss"
+    # The value's own MLP (hidden widths), set on the policy as it loads, so that a config file can hold it
+    # although `--policy.path` takes the policy's config from the checkpoint: a BC checkpoint gets a freshly
+    # initialised critic (BCRLConfig.critic_hidden_dims). None keeps the policy's; a policy that already has
+    # another critic is an error.
+    critic_hidden_dims: tuple[int, ...] | None = None
 
     def __post_init__(self):
         if self.term_weighting not in ("loss", "gradient_share"):
@@ -538,6 +543,18 @@ def build_policy(cfg: FinetuneConfig, dataset):
     return policy, preprocessor, postprocessor
 
 
+def set_critic(policy_cfg: PreTrainedConfig, critic_hidden_dims: tuple[int, ...] | None) -> None:
+    """`--ppo.critic_hidden_dims` onto the policy's config (the checkpoint's, or --policy.type's)."""
+    if critic_hidden_dims is None:
+        return
+    wanted, current = tuple(critic_hidden_dims), tuple(policy_cfg.critic_hidden_dims)
+    if current and current != wanted:
+        where = f"the policy at {policy_cfg.pretrained_path}" if policy_cfg.pretrained_path else "--policy"
+        raise ValueError(f"ppo.critic_hidden_dims={list(wanted)} but {where} has critic_hidden_dims={list(current)}: "
+                         "drop one of them")
+    policy_cfg.critic_hidden_dims = wanted
+
+
 def env_gym_kwargs(cfg: FinetuneConfig, uses_images: bool) -> dict:
     kwargs = dict(cfg.env.gym_kwargs)
     if not uses_images:
@@ -570,6 +587,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
     if cfg.ppo.obs_normalization not in OBS_NORMALIZATION_MODES:
         raise ValueError(f"--ppo.obs_normalization={cfg.ppo.obs_normalization!r}: choose one of {OBS_NORMALIZATION_MODES}")
     last_checkpoint = cfg.output_dir / "checkpoints" / "last"
+    set_critic(cfg.policy, cfg.ppo.critic_hidden_dims)
     if cfg.schedule.type == "auto":  # BC+RL decays theta_t from 1; from scratch there is no BC term at all
         from_checkpoint = cfg.policy.pretrained_path is not None
         cfg.schedule.type = "three_phase" if from_checkpoint else "constant"

@@ -33,7 +33,7 @@ class BCRLConfig(PreTrainedConfig):
     # (): the value is one linear layer on the shared trunk (the paper's network). Hidden widths, e.g.
     # (256, 256): a separate critic MLP on the trunk's inputs (keypoints detached), so that PPO's value loss
     # cannot pull the trunk away from what the BC term taught it. A BC checkpoint without a critic loads with
-    # a freshly initialised one (`bcrl-finetune --policy.path=... --policy.critic_hidden_dims=[256,256]`).
+    # a freshly initialised one (`bcrl-finetune --policy.path=... --ppo.critic_hidden_dims=[256,256]`).
     critic_hidden_dims: tuple[int, ...] = ()
     aux_hidden_dim: int = 64  # hidden width of the EEF- and grasp-position heads off the keypoints
     # The delta-position head predicts delta_pos / delta_pos_scale_m, so that its targets are O(1)
