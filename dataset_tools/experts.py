@@ -142,19 +142,8 @@ class ScriptedLiftExpert:
 
     def _yaw_alignment(self, eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> np.ndarray:
         """Rotation about the world z axis that lines the fingers up with the nearest cube face."""
-        eef_yaw = _yaw_of(eef_quat_xyzw)
-        cube_yaw = _yaw_of(cube_quat_xyzw)
-        # A cube is symmetric every 90 degrees: wrap the error into [-45, 45) degrees.
-        error = (cube_yaw - eef_yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4
+        error = geometry.cube_yaw_error(eef_quat_xyzw, cube_quat_xyzw)
         return geometry.rotvec_to_quat(np.array([0.0, 0.0, self.yaw_gain * error]))
-
-
-def _yaw_of(quat_xyzw: np.ndarray) -> float:
-    """Heading of the body's x axis projected on the world xy plane."""
-    x, y, z, w = geometry.quat_normalize(quat_xyzw)
-    x_axis_x = 1 - 2 * (y * y + z * z)
-    x_axis_y = 2 * (x * y + z * w)
-    return float(np.arctan2(x_axis_y, x_axis_x))
 
 
 class PolicyExpert:

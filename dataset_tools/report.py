@@ -1,5 +1,5 @@
-"""`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2, a success table (markdown + JSON)
-and PNG plots. Runs of one method on one dataset at one env-step budget (training seeds) share a cell: the
+"""`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2, a success table, a table of the
+cube lost after the lift (markdown + JSON) and PNG plots. Runs of one method on one dataset at one env-step budget (training seeds) share a cell: the
 tables give their mean and spread, the details table every run.
 
 Demonstrators' return comes from each run's dataset (`episode_return` in the episode metadata); policy return,
@@ -18,6 +18,7 @@ from pathlib import Path
 import draccus
 import numpy as np
 
+from lerobot_bcrl.features import LIFT_REWARD
 from lerobot_bcrl.stats import mean_ci95
 
 METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
@@ -63,11 +64,21 @@ def success_rate(episodes: list[dict]) -> tuple[float, tuple[float, float]]:
     return successes / len(episodes), wilson_ci95(successes, len(episodes))
 
 
+def steps_lost_after_lift(episode: dict) -> float:
+    """Steps from the first lift to the end without the cube lifted: it slipped or was let go, and the sparse
+    reward stopped. Evaluations before `lifted_steps` was recorded give it through the return (sparse reward)."""
+    if not episode["success"]:
+        return 0.0
+    lifted_steps = episode.get("lifted_steps", episode["episode_return"] / LIFT_REWARD)
+    return max(0.0, episode["length"] - episode["steps_to_lift"] + 1 - lifted_steps)
+
+
 def summarize_run(run_dir: Path) -> dict:
     result = json.loads((run_dir / "eval_final.json").read_text())
     episodes = result["episodes"]
     returns = [e["episode_return"] for e in episodes]
     lifts = [e["steps_to_lift"] for e in episodes if e["steps_to_lift"] is not None]
+    lost_steps = [steps_lost_after_lift(e) for e in episodes]
     mean, ci = mean_ci95(returns)
     success, success_ci95 = success_rate(episodes)
     # One dataset, one table row, however a run spelled its path (older runs wrote it relative to their cwd).
@@ -84,6 +95,8 @@ def summarize_run(run_dir: Path) -> dict:
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
         "success": success, "success_ci95": success_ci95,
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
+        "lost_after_lift": sum(steps > 0.5 for steps in lost_steps),  # episodes that lifted the cube and lost it
+        "return_lost_after_lift": LIFT_REWARD * float(np.mean(lost_steps)),  # per episode, over all episodes
     }
 
 
@@ -113,7 +126,11 @@ def aggregate_cell(runs: list[dict]) -> dict:
             "return_sd": float(np.std(returns, ddof=1)) if len(runs) > 1 else float("nan"),
             "recovered_pct": float(np.mean([r["recovered_pct"] for r in runs])),
             "recovered_pct_range": (min(r["recovered_pct"] for r in runs), max(r["recovered_pct"] for r in runs)),
-            "success": float(np.mean([r["success"] for r in runs])), "success_per_run": [r["success"] for r in runs]}
+            "success": float(np.mean([r["success"] for r in runs])), "success_per_run": [r["success"] for r in runs],
+            "lost_after_lift": float(np.mean([r["lost_after_lift"] for r in runs])),
+            "lost_after_lift_per_run": [r["lost_after_lift"] for r in runs],
+            "return_lost_after_lift": float(np.mean([r["return_lost_after_lift"] for r in runs])),
+            "return_lost_after_lift_pct": float(np.mean([100 * r["return_lost_after_lift"] / r["demo_return"] for r in runs]))}
 
 
 def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
@@ -150,6 +167,14 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         per_run = ", ".join(f"{100 * s:.0f}" for s in cells[key]["success_per_run"])
         return f"{100 * cells[key]['success']:.0f} % (runs: {per_run})"
 
+    def lost_after_lift_cell(key) -> str:
+        if key not in cells:
+            return "-"
+        cell, episodes = cells[key], runs_by_cell[key][0]["episodes"]
+        counted = f"{cell['lost_after_lift']:.0f} of {episodes}" if cell["runs"] == 1 else (
+            f"{cell['lost_after_lift']:.1f} of {episodes} (runs: {', '.join(map(str, cell['lost_after_lift_per_run']))})")
+        return f"{counted}; {cell['return_lost_after_lift']:.1f} ({cell['return_lost_after_lift_pct']:.1f} %)"
+
     lines = []
     for title, demo_columns, first_columns, cell_text in (
         ("Table 1: mean return (95 % CI; over several runs: their mean and sd), sparse reward, horizon 200 (max 450)",
@@ -159,6 +184,9 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         ("Table 3: success (95 % Wilson interval; over several runs: their mean, and each run's)",
          ["sigma", "demonstrators"], lambda demo: [f"{demo['sigma']:g}", f"{100 * demo['demo_success']:.0f} %"],
          success_table_cell),
+        ("Table 4: episodes that lifted the cube and lost it again; the return this cost per episode (% of the "
+         "demonstrators' return); over several runs: their mean", ["sigma"], lambda demo: [f"{demo['sigma']:g}"],
+         lost_after_lift_cell),
     ):
         lines += ([title, ""] if not lines else ["", title, ""])
         lines += ["| " + " | ".join(demo_columns + list(headers.values())) + " |",
@@ -168,8 +196,9 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
             lines.append("| " + " | ".join(first_columns(demo) + [cell_text((dataset, k)) for k in headers]) + " |")
     any_sampled = any(r["sampled_success"] is not None for r in rows)
     lines += ["", "Details", "", "| sigma | method | env steps | seed | episodes | return (95 % CI) | % recovered |"
-              " success (95 % CI) |" + (" success, sampled actions |" if any_sampled else "") + " steps to lift | run |",
-              "|---" * (10 + any_sampled) + "|"]
+              " success (95 % CI) |" + (" success, sampled actions |" if any_sampled else "") + " steps to lift |"
+              " lost after lift: episodes, return | run |",
+              "|---" * (11 + any_sampled) + "|"]
     for r in sorted(rows, key=lambda r: (r["sigma"], r["method"], r["env_steps"], str(r.get("seed")))):
         sampled_cell = ""
         if any_sampled:
@@ -177,7 +206,7 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         seed = "-" if r.get("seed") is None else r["seed"]
         lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
-                     f" {r['steps_to_lift']:.1f} | `{r['run']}` |")
+                     f" {r['steps_to_lift']:.1f} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
     cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],
                   "column": headers[key], **cell} for (dataset, key), cell in sorted(cells.items(), key=lambda kv: str(kv[0]))]
     return "\n".join(lines) + "\n", cell_list

@@ -23,6 +23,9 @@ AUX_IMITATE_KEY = "aux.imitate"
 # what the controller was commanded; robosuite's OSC covers only part of each command, so the two differ.
 AUX_PROPRIO_ACTION_KEY = "aux.proprio_action"
 REWARD_KEY = "next.reward"
+# robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None); the
+# env pays it, the report turns returns back into lifted steps with it.
+LIFT_REWARD = 2.25
 DONE_KEY = "next.done"
 SUCCESS_KEY = "next.success"
 

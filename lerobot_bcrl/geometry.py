@@ -86,6 +86,18 @@ def quat_angle(quat_xyzw: np.ndarray) -> np.ndarray:
     return 2.0 * np.arccos(np.minimum(w, 1.0))
 
 
+def yaw_of(quat_xyzw: np.ndarray) -> float:
+    """Heading of the body's x axis projected on the world xy plane (rad)."""
+    x, y, z, w = quat_normalize(quat_xyzw)
+    return float(np.arctan2(2 * (x * y + z * w), 1 - 2 * (y * y + z * z)))
+
+
+def cube_yaw_error(eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> float:
+    """The yaw (rad, in [-pi/4, pi/4)) that lines the fingers up with the nearest face of a cube: a cube is
+    symmetric every 90 degrees."""
+    return (yaw_of(cube_quat_xyzw) - yaw_of(eef_quat_xyzw) + np.pi / 4) % (np.pi / 2) - np.pi / 4
+
+
 def quat_slerp(q0_xyzw: np.ndarray, q1_xyzw: np.ndarray, fraction: float | np.ndarray) -> np.ndarray:
     """Spherical interpolation along the shorter arc."""
     q0 = quat_normalize(q0_xyzw)

@@ -6,8 +6,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from dataset_tools.experts import ScriptedLiftExpert
-from lerobot_bcrl.envs.lift import LIFT_REWARD, LiftEnv
-from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, STATE_DIM
+from lerobot_bcrl.envs.lift import LiftEnv
+from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, LIFT_REWARD, STATE_DIM
 
 NO_OP = np.array([0, 0, 0, 0, 0, 0, 1.0, -1.0])
 

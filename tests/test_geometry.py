@@ -124,3 +124,14 @@ def test_quat_continuous_removes_sign_jumps():
     quats = G.rotvec_to_quat(np.stack([np.zeros(10), np.zeros(10), angles], axis=1))
     flipped = quats * np.where(np.arange(10) % 3 == 1, -1.0, 1.0)[:, None]
     np.testing.assert_allclose(G.quat_continuous(flipped), quats, atol=1e-12)
+
+
+def test_cube_yaw_error_wraps_every_90_degrees_and_ignores_the_gripper_pointing_down():
+    down = G.rotvec_to_quat(np.array([math.pi, 0.0, 0.0]))  # a gripper pointing at the table
+    for eef_yaw_deg, cube_yaw_deg, expected_deg in [(0, 10, 10), (0, 80, -10), (30, 0, -30), (0, 44, 44), (0, 46, -44),
+                                                     (-170, 100, 0), (20, 200, 0)]:
+        eef = G.quat_multiply(G.rotvec_to_quat(np.array([0.0, 0.0, math.radians(eef_yaw_deg)])), down)
+        cube = G.rotvec_to_quat(np.array([0.0, 0.0, math.radians(cube_yaw_deg)]))
+        assert math.degrees(G.cube_yaw_error(eef, cube)) == pytest.approx(expected_deg, abs=1e-6), (eef_yaw_deg, cube_yaw_deg)
+        turned = G.quat_multiply(G.rotvec_to_quat(np.array([0.0, 0.0, G.cube_yaw_error(eef, cube)])), eef)
+        assert G.cube_yaw_error(turned, cube) == pytest.approx(0.0, abs=1e-6)  # the error is the turn that aligns

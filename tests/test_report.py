@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
-from dataset_tools.report import ReportConfig, demonstrators, report, trailing_mean, wilson_ci95
+from dataset_tools.report import ReportConfig, demonstrators, report, steps_lost_after_lift, trailing_mean, wilson_ci95
+from lerobot_bcrl.features import LIFT_REWARD
 from lerobot_bcrl.rl.ppo import LOG_COLUMNS
+from lerobot_bcrl.rl.rollout import EpisodeStats
 
 
 def episode_dicts(returns: list[float]) -> list[dict]:
@@ -144,3 +147,40 @@ def test_trailing_mean_matches_a_loop():
     expected = [values[max(0, i - 4) : i + 1].mean() for i in range(len(values))]
     np.testing.assert_allclose(trailing_mean(values, 5), expected)
     np.testing.assert_array_equal(trailing_mean(values, 1), values)
+
+
+def test_episode_stats_count_lifted_steps_after_the_first_lift():
+    stats = EpisodeStats(0.0, 0, False, None)
+    for lifted in [False, True, True, False, False, True]:  # lifted at step 2, lost at 4-5, lifted again at 6
+        stats.record_step(LIFT_REWARD if lifted else 0.0, {"is_success": lifted})
+    assert (stats.length, stats.steps_to_lift, stats.lifted_steps) == (6, 2, 3)
+    assert stats.success and stats.episode_return == pytest.approx(3 * LIFT_REWARD)
+    assert steps_lost_after_lift(asdict(stats)) == 2  # steps 4 and 5
+    never = EpisodeStats(0.0, 0, False, None)
+    never.record_step(0.0, {})
+    assert steps_lost_after_lift(asdict(never)) == 0 and never.steps_to_lift is None
+
+
+def test_table_4_counts_the_cube_lost_after_the_lift(lowdim_dataset_root, tmp_path):
+    kept = {"episode_return": 151 * LIFT_REWARD, "length": 200, "success": True, "steps_to_lift": 50, "lifted_steps": 151}
+    lost = {**kept, "episode_return": 51 * LIFT_REWARD, "lifted_steps": 51}  # held 51 steps, then 100 without it
+    # an evaluation written before `lifted_steps` was recorded: the lifted steps come from the sparse return
+    lost_old = {key: value for key, value in lost.items() if key != "lifted_steps"}
+    failed = {"episode_return": 0.0, "length": 200, "success": False, "steps_to_lift": None, "lifted_steps": 0}
+    runs = []
+    for name, seed, episodes in (("a", 1, [kept, lost, failed, kept]), ("b", 2, [kept, lost_old, lost, kept])):
+        run = fake_run(tmp_path / name, lowdim_dataset_root, "BC+RL", [0.0], 1024, seed=seed)
+        result = json.loads((run / "eval_final.json").read_text())
+        (run / "eval_final.json").write_text(json.dumps({**result, "episodes": episodes}))
+        runs.append(run)
+    result = report(ReportConfig(runs=[str(r) for r in runs], output_dir=tmp_path / "report"))
+    rows = {r["seed"]: r for r in result["rows"]}
+    assert rows[1]["lost_after_lift"] == 1 and rows[2]["lost_after_lift"] == 2
+    assert rows[1]["return_lost_after_lift"] == pytest.approx(100 * LIFT_REWARD / 4)
+    assert rows[2]["return_lost_after_lift"] == pytest.approx(200 * LIFT_REWARD / 4)
+    demo = rows[1]["demo_return"]
+    _, _, row = table(result["tables"], "Table 4")
+    mean_lost = 150 * LIFT_REWARD / 4
+    assert f"| 1.5 of 4 (runs: 1, 2); {mean_lost:.1f} ({100 * mean_lost / demo:.1f} %) |" in row
+    details = table(result["tables"], "Details")
+    assert any(f"| 1, {100 * LIFT_REWARD / 4:.1f} |" in line for line in details)

@@ -18,8 +18,6 @@ from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, STATE_DIM
 
 import robosuite  # noqa: E402  (after rendering.py has set MUJOCO_GL)
 
-# robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None).
-LIFT_REWARD = 2.25
 TASK_DESCRIPTION = "Lift the red cube off the table."
 OBS_TYPES = ("pixels_agent_pos", "agent_pos")
 

@@ -26,6 +26,15 @@ class EpisodeStats:
     success: bool  # the cube was lifted at some step (info["is_success"] ever true)
     steps_to_lift: int | None  # first step (1-based) with info["is_success"], None if never
     seed: int | None = None
+    lifted_steps: int = 0  # steps with info["is_success"]; fewer than length - steps_to_lift + 1: the cube was lost again
+
+    def record_step(self, reward: float, info: dict) -> None:
+        self.episode_return += float(reward)
+        self.length += 1
+        lifted = bool(info.get("is_success", False))
+        self.lifted_steps += int(lifted)
+        if lifted and not self.success:
+            self.success, self.steps_to_lift = True, self.length
 
 
 @dataclass
@@ -131,11 +140,7 @@ class RolloutWorker:
             env_actions = self.agent.to_env_action(actions).numpy()
             for i, env in enumerate(self.envs):
                 obs, reward, terminated, truncated, info = env.step(env_actions[i])
-                stats = self.running[i]
-                stats.episode_return += float(reward)
-                stats.length += 1
-                if info.get("is_success", False) and not stats.success:
-                    stats.success, stats.steps_to_lift = True, stats.length
+                self.running[i].record_step(reward, info)
                 rewards[t, i] = reward
                 obs = flatten_observation(obs)
                 if terminated or truncated:
@@ -143,7 +148,7 @@ class RolloutWorker:
                         last_obs = self.agent.observation_batch(stack_observations([obs]))
                         truncation_values[t, i] = float(self.agent.value(last_obs)[0])
                     dones[t, i] = 1.0
-                    finished.append(stats)
+                    finished.append(self.running[i])
                     obs, self.running[i] = self._reset(env)
                 self.observations[i] = obs
         last_values = self.agent.value(self.agent.observation_batch(stack_observations(self.observations)))
@@ -189,10 +194,7 @@ class RolloutWorker:
             else:
                 action = self.agent.mean_action(batch)[0].numpy()
             obs, reward, terminated, truncated, info = self.eval_env.step(action)
-            stats.episode_return += float(reward)
-            stats.length += 1
-            if info.get("is_success", False) and not stats.success:
-                stats.success, stats.steps_to_lift = True, stats.length
+            stats.record_step(reward, info)
             done = terminated or truncated
         return stats
 
