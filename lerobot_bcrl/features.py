@@ -22,6 +22,10 @@ AUX_IMITATE_KEY = "aux.imitate"
 # The delta between consecutive measured EEF poses (same layout as `action`). In simulation `action` is
 # what the controller was commanded; robosuite's OSC covers only part of each command, so the two differ.
 AUX_PROPRIO_ACTION_KEY = "aux.proprio_action"
+# Derived by the bcrl preprocessor (BCRLConfig.cube_yaw_features), never stored: sin and cos of 4x the yaw that
+# turns the fingers onto the nearest cube face, from observation.state's and environment_state's quaternions.
+CUBE_YAW_KEY = "observation.cube_yaw"
+CUBE_YAW_DIM = 2
 REWARD_KEY = "next.reward"
 # robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None); the
 # env pays it, the report turns returns back into lifted steps with it.

@@ -46,5 +46,5 @@ $BIN/lerobot-eval --policy.path="$OUT/bcrl/checkpoints/last/pretrained_model" --
   --env.obs_type=agent_pos --eval.n_episodes=4 --eval.batch_size=1 --eval.use_async_envs=false \
   --policy.device=cpu --output_dir="$OUT/eval" 2>&1 | grep -m1 -o "{'avg_sum_reward[^}]*" || true
 
-echo "== 5/5 report: Tables 1-3, plots =="
+echo "== 5/5 report: Tables 1-4, plots =="
 $BIN/bcrl-report --runs="[$OUT/bc_only,$OUT/bcrl]" --output_dir="$OUT/report"

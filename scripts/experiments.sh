@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The paper's experiments for one sigma, low-dim (CPU) or images (GPU): record demonstrations, BC with
 # lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
-# evaluation on the same held-out seeds), and the report (Tables 1-3, plots). Another BC+RL training seed on
+# evaluation on the same held-out seeds), and the report (Tables 1-4, plots). Another BC+RL training seed on
 # the same demonstrations and BC: the same command plus BCRL_NAME=bcrl_seed2 BCRL_ARGS="... --seed=2" (the
 # report takes every $OUT/bcrl* run and puts the seeds of one cell together); BCRL_LABEL="BC+RL, c1 0.1" names
 # a variant in the report (its runs get their own column).

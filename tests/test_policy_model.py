@@ -137,3 +137,30 @@ def test_overfits_a_tiny_lowdim_dataset(lowdim_dataset_root):
     final_loss, metrics = policy.forward(batch)
     assert final_loss.item() <= first_loss / 10, (first_loss, metrics)
     assert metrics["gripper_accuracy"] == 1.0
+
+
+def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_load(lowdim_dataset_root, tmp_path):
+    import numpy as np
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_bcrl import geometry
+    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
+
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, postprocessor = make_bcrl_policy(dataset, cube_yaw_features=True)
+    raw = whole_dataset_batch(dataset)
+    batch = preprocessor(dict(raw))
+    expected = [geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[3:7].numpy())
+                for s, e in zip(raw[STATE_KEY], raw[ENV_STATE_KEY])]
+    np.testing.assert_allclose(batch[CUBE_YAW_KEY].numpy(), np.stack([np.sin(4 * np.array(expected)), np.cos(4 * np.array(expected))], -1), atol=1e-4)
+    assert not torch.allclose(batch[ENV_STATE_KEY], raw[ENV_STATE_KEY])  # the normalizer still ran after it
+    loss, _ = policy.forward(dict(batch))
+    assert torch.isfinite(loss)
+    for part in (policy, preprocessor, postprocessor):
+        part.save_pretrained(tmp_path)
+    loaded = BCRLPolicy.from_pretrained(tmp_path)
+    assert loaded.config.cube_yaw_features
+    loaded_pre, _ = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
+    assert torch.equal(policy.select_action(preprocessor(dict(raw))), loaded.select_action(loaded_pre(dict(raw))))
+    with pytest.raises(KeyError):  # without the step the policy must not silently run on missing features
+        policy.select_action(make_bcrl_policy(dataset)[1](dict(raw)))

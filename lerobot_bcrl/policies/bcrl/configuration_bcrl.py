@@ -36,6 +36,10 @@ class BCRLConfig(PreTrainedConfig):
     # a freshly initialised one (`bcrl-finetune --policy.path=... --ppo.critic_hidden_dims=[256,256]`).
     critic_hidden_dims: tuple[int, ...] = ()
     aux_hidden_dim: int = 64  # hidden width of the EEF- and grasp-position heads off the keypoints
+    # low_dim only: also feed the cube's yaw relative to the fingers as (sin 4d, cos 4d), computed by the
+    # preprocessor from the two quaternions (a cube looks the same every 90 degrees). From raw quaternions an MLP
+    # does not learn the demonstrators' turn to the nearest face (docs/RESULTS.md, fifteenth session).
+    cube_yaw_features: bool = False
     # The delta-position head predicts delta_pos / delta_pos_scale_m, so that its targets are O(1)
     # although the action itself is left unnormalized (ACTION uses IDENTITY, see normalization_mapping).
     delta_pos_scale_m: float = MAX_DELTA_POS_M
@@ -126,6 +130,8 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"bcrl in pixels mode reads exactly one camera, got {list(self.image_features)}")
         if not self.uses_images and ENV_STATE_KEY not in self.input_features:
             raise ValueError(f"bcrl in low_dim mode needs '{ENV_STATE_KEY}' among the input features")
+        if self.cube_yaw_features and self.uses_images:
+            raise ValueError("bcrl: cube_yaw_features reads the cube pose in observation.environment_state (low_dim mode)")
         action = self.action_feature
         if action is not None and tuple(action.shape) != (ACTION_DIM,):
             raise ValueError(f"bcrl predicts the {ACTION_DIM}-D delta action, got action shape {action.shape}")

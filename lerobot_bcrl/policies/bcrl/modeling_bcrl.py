@@ -21,6 +21,8 @@ from lerobot_bcrl.features import (
     AUX_GRASP_POS_KEY,
     AUX_GRASP_VALID_KEY,
     AUX_IMITATE_KEY,
+    CUBE_YAW_DIM,
+    CUBE_YAW_KEY,
     ENV_STATE_KEY,
     STATE_KEY,
 )
@@ -108,7 +110,7 @@ class BCRLModel(nn.Module):
             keypoint_dim = 2 * config.num_keypoints
         else:
             self.keypoint_encoder = None
-            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0]
+            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0] + (CUBE_YAW_DIM if config.cube_yaw_features else 0)
         self.trunk = mlp(keypoint_dim + state_dim, config.trunk_hidden_dims)
         trunk_dim = config.trunk_hidden_dims[-1] if config.trunk_hidden_dims else keypoint_dim + state_dim
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
@@ -128,6 +130,8 @@ class BCRLModel(nn.Module):
     def keypoints(self, batch: dict[str, Tensor]) -> Tensor:
         if self.keypoint_encoder is not None:
             return self.keypoint_encoder(batch[self.config.image_key])
+        if self.config.cube_yaw_features:
+            return torch.cat([batch[ENV_STATE_KEY], batch[CUBE_YAW_KEY]], dim=-1)
         return batch[ENV_STATE_KEY]
 
     def forward(self, batch: dict[str, Tensor]) -> BCRLOutputs:

@@ -1,15 +1,26 @@
 """Pre/post-processing pipelines of the `bcrl` policy, and the route that keeps `aux.*` targets in a batch.
 
 Preprocessor: rename -> add batch dim -> device -> normalize (VISUAL/STATE/ENV mean-std, ACTION identity).
-Postprocessor: unnormalize (identity for ACTION) -> cpu. Both are LeRobot's default steps.
+Postprocessor: unnormalize (identity for ACTION) -> cpu. Both are LeRobot's default steps; with
+`cube_yaw_features` the preprocessor computes `observation.cube_yaw` before it normalizes.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
-from lerobot.processor import PolicyAction, PolicyProcessorPipeline, converters, make_default_pre_post_processors
+from lerobot.configs.types import FeatureType, PipelineFeatureType, PolicyFeature
+from lerobot.processor import (
+    ObservationProcessorStep,
+    PolicyAction,
+    PolicyProcessorPipeline,
+    ProcessorStepRegistry,
+    converters,
+    make_default_policy_processor_steps,
+    make_policy_processor_pipelines,
+)
 
 from lerobot_bcrl.features import (
     AUX_EEF_POS_KEY,
@@ -17,6 +28,11 @@ from lerobot_bcrl.features import (
     AUX_GRASP_VALID_KEY,
     AUX_IMITATE_KEY,
     AUX_PROPRIO_ACTION_KEY,
+    CUBE_YAW_DIM,
+    CUBE_YAW_KEY,
+    ENV_STATE_KEY,
+    STATE_EEF_QUAT,
+    STATE_KEY,
 )
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
@@ -43,6 +59,32 @@ def keep_aux_targets_in_batches() -> None:
 keep_aux_targets_in_batches()
 
 
+def yaw_of(quat_xyzw: torch.Tensor) -> torch.Tensor:
+    """Heading of the body's x axis on the world xy plane (rad), batched; geometry.yaw_of for tensors."""
+    x, y, z, w = torch.nn.functional.normalize(quat_xyzw, dim=-1).unbind(-1)
+    return torch.atan2(2 * (x * y + z * w), 1 - 2 * (y * y + z * z))
+
+
+@dataclass
+@ProcessorStepRegistry.register(name="bcrl_cube_yaw_features")
+class CubeYawFeaturesStep(ObservationProcessorStep):
+    """`observation.cube_yaw` = (sin 4d, cos 4d), d the yaw from the fingers to the cube (geometry.cube_yaw_error
+    up to whole quarter turns), from the raw quaternions: run it before the normalizer."""
+
+    def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
+        eef_quat = observation[STATE_KEY][..., STATE_EEF_QUAT]
+        cube_quat = observation[ENV_STATE_KEY][..., 3:7]
+        four_d = 4 * (yaw_of(cube_quat) - yaw_of(eef_quat))
+        observation[CUBE_YAW_KEY] = torch.stack([torch.sin(four_d), torch.cos(four_d)], dim=-1)
+        return observation
+
+    def transform_features(
+        self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
+    ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
+        features[PipelineFeatureType.OBSERVATION][CUBE_YAW_KEY] = PolicyFeature(type=FeatureType.ENV, shape=(CUBE_YAW_DIM,))
+        return features
+
+
 def make_bcrl_pre_post_processors(
     config: BCRLConfig,
     dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None,
@@ -50,4 +92,9 @@ def make_bcrl_pre_post_processors(
     PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
     PolicyProcessorPipeline[PolicyAction, PolicyAction],
 ]:
-    return make_default_pre_post_processors(config, dataset_stats)
+    steps = make_default_policy_processor_steps(config, dataset_stats)
+    yaw = [CubeYawFeaturesStep()] if config.cube_yaw_features else []
+    return make_policy_processor_pipelines(
+        input_steps=[steps.rename_observations, steps.add_batch_dim, steps.to_device, *yaw, steps.normalize],
+        output_steps=[steps.unnormalize, steps.to_cpu],
+    )
