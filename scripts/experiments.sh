@@ -25,6 +25,8 @@ EVAL_EPISODES=${EVAL_EPISODES:-50}
 # worker, the value's own [256, 256] MLP, schedule alpha 300 / beta 500 / phi 1500)
 BCRL_ARGS=${BCRL_ARGS:-}
 SCHEDULE=${SCHEDULE:-}                    # schedule flags over the config's, e.g. "--schedule.alpha=640 --schedule.phi=3000"
+BC_NAME=${BC_NAME:-bc}                    # the BC checkpoint's folder under $OUT (trained if missing)
+BC_ONLY_NAME=${BC_ONLY_NAME:-bc_only}     # its "BC only" evaluation's folder
 BCRL_NAME=${BCRL_NAME:-bcrl}              # the BC+RL run's folder under $OUT
 BCRL_LABEL=${BCRL_LABEL:-}                # its name in the report, spaces allowed (default: BC+RL)
 # extra bcrl-record flags, e.g. RECORD_ARGS="--miss_probability=0.3" (demonstrations with planned misses and retries)
@@ -39,10 +41,10 @@ if [ ! -f "$DATA/meta/info.json" ]; then
   $BIN/bcrl-record --repo_id="local/lift_${MODE}_sigma${SIGMA}" --root="$DATA" --n_episodes="$EPISODES" \
     --sigma="$SIGMA" --seed=0 --images="$IMAGES" --overwrite=true $RECORD_ARGS
 fi
-BC_CKPT="$OUT/bc/checkpoints/last/pretrained_model"
+BC_CKPT="$OUT/$BC_NAME/checkpoints/last/pretrained_model"
 if [ ! -d "$BC_CKPT" ]; then
   echo "== BC: lerobot-train, $BC_STEPS steps =="
-  $BIN/lerobot-train --config_path="configs/bc_lift_${MODE}.json" $DATASET --output_dir="$OUT/bc" \
+  $BIN/lerobot-train --config_path="configs/bc_lift_${MODE}.json" $DATASET --output_dir="$OUT/$BC_NAME" \
     --steps="$BC_STEPS" --save_freq="$BC_STEPS" --log_freq=500
 fi
 finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or skip a finished one
@@ -52,11 +54,11 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
   echo "== $name =="
   $BIN/bcrl-finetune "$@" $DATASET --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/$name" --resume=$resume
 }
-finetune bc_only --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
+finetune "$BC_ONLY_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
 finetune "$BCRL_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
   $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS \
   ${BCRL_LABEL:+"--label=$BCRL_LABEL"}
-RUNS="$OUT/bc_only,$OUT/bcrl*"  # every BC+RL run here: seeds, continuations
+RUNS="$OUT/$BC_ONLY_NAME,$OUT/bcrl*"  # every BC+RL run here: seeds, continuations
 if [ "$SCRATCH_STEPS" != 0 ]; then
   finetune scratch --config_path="configs/ppo_scratch_lift_${MODE}.json" --policy.type=bcrl \
     --total_env_steps="$SCRATCH_STEPS" --rollout.n_workers=2 --rollout.envs_per_worker=2 --eval_freq=20480 --eval_episodes=10
