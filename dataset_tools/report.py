@@ -1,6 +1,6 @@
 """`bcrl-report`: finished bcrl-finetune runs -> the paper's Tables 1 and 2, a success table, a table of the
-cube lost after the lift (markdown + JSON) and PNG plots. Runs of one method on one dataset at one env-step budget (training seeds) share a cell: the
-tables give their mean and spread, the details table every run.
+cube lost after the lift (markdown + JSON) and PNG plots. Runs of one method on one dataset at one env-step
+budget (training seeds) share a cell: the tables give their mean and spread, the details table every run.
 
 Demonstrators' return comes from each run's dataset (`episode_return` in the episode metadata); policy return,
 success and steps-to-lift from the run's `eval_final.json`; curves from its `logs.csv`.

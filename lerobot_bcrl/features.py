@@ -48,6 +48,8 @@ ENV_STATE_DIM = len(ENV_STATE_NAMES)
 STATE_EEF_POS = slice(0, 3)
 STATE_EEF_QUAT = slice(3, 7)
 STATE_GRIPPER_QPOS = slice(7, 9)
+# Slices of observation.environment_state
+ENV_STATE_CUBE_QUAT = slice(3, 7)
 
 
 def dataset_features(image_size: int | None, use_videos: bool) -> dict[str, dict]:

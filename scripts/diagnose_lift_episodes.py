@@ -23,7 +23,7 @@ import torch
 from dataset_tools.experts import fingers_closed_on_nothing
 from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl import geometry
-from lerobot_bcrl.features import LIFT_REWARD, STATE_EEF_POS, STATE_EEF_QUAT, STATE_GRIPPER_QPOS
+from lerobot_bcrl.features import ENV_STATE_CUBE_QUAT, LIFT_REWARD, STATE_EEF_POS, STATE_EEF_QUAT, STATE_GRIPPER_QPOS
 from lerobot_bcrl.rl.agent import BCRLAgent, flatten_observation
 from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET
 
@@ -54,7 +54,7 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
             gripper = gripper_dist.sample() if sample_gripper else outputs.gripper_logits.argmax(-1)
             action = policy.to_env_action(continuous, gripper)[0].numpy()
         if align_yaw and closed_at is None:  # a probe: the demonstrators' turn to the nearest face, until the first closing
-            turn = geometry.cube_yaw_error(obs["agent_pos"][STATE_EEF_QUAT], obs["environment_state"][3:7])
+            turn = geometry.cube_yaw_error(obs["agent_pos"][STATE_EEF_QUAT], obs["environment_state"][ENV_STATE_CUBE_QUAT])
             action[3:7] = geometry.rotvec_to_quat(np.array([0.0, 0.0, turn]))  # the env clamps it to pi/40 per step
         obs, _, _, _, info = env.step(action)
         cube_minus_eef = obs["environment_state"][7:10]
@@ -63,7 +63,7 @@ def episode(agent: BCRLAgent, env: LiftEnv, seed: int, sample_position: bool, sa
         eef_z = float(obs["agent_pos"][STATE_EEF_POS][2])
         if action[7] > 0 and closed_at is None:
             closed_at, cube_minus_eef_at_close = t, [round(float(x), 3) for x in cube_minus_eef]
-            yaw_error_at_close = geometry.cube_yaw_error(obs["agent_pos"][STATE_EEF_QUAT], obs["environment_state"][3:7])
+            yaw_error_at_close = geometry.cube_yaw_error(obs["agent_pos"][STATE_EEF_QUAT], obs["environment_state"][ENV_STATE_CUBE_QUAT])
             eef_z_at_close, max_eef_rise_after_close = eef_z, 0.0
         if eef_z_at_close is not None:
             max_eef_rise_after_close = max(max_eef_rise_after_close, eef_z - eef_z_at_close)

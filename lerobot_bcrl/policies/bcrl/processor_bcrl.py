@@ -30,6 +30,7 @@ from lerobot_bcrl.features import (
     AUX_PROPRIO_ACTION_KEY,
     CUBE_YAW_DIM,
     CUBE_YAW_KEY,
+    ENV_STATE_CUBE_QUAT,
     ENV_STATE_KEY,
     STATE_EEF_QUAT,
     STATE_KEY,
@@ -73,7 +74,7 @@ class CubeYawFeaturesStep(ObservationProcessorStep):
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         eef_quat = observation[STATE_KEY][..., STATE_EEF_QUAT]
-        cube_quat = observation[ENV_STATE_KEY][..., 3:7]
+        cube_quat = observation[ENV_STATE_KEY][..., ENV_STATE_CUBE_QUAT]
         four_d = 4 * (yaw_of(cube_quat) - yaw_of(eef_quat))
         observation[CUBE_YAW_KEY] = torch.stack([torch.sin(four_d), torch.cos(four_d)], dim=-1)
         return observation
