@@ -144,13 +144,13 @@ def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_loa
     from lerobot.policies.factory import make_pre_post_processors
 
     from lerobot_bcrl import geometry
-    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
+    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_CUBE_QUAT, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
 
     dataset = load_dataset(lowdim_dataset_root)
     policy, preprocessor, postprocessor = make_bcrl_policy(dataset, cube_yaw_features=True)
     raw = whole_dataset_batch(dataset)
     batch = preprocessor(dict(raw))
-    expected = [geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[3:7].numpy())
+    expected = [geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[ENV_STATE_CUBE_QUAT].numpy())
                 for s, e in zip(raw[STATE_KEY], raw[ENV_STATE_KEY])]
     np.testing.assert_allclose(batch[CUBE_YAW_KEY].numpy(), np.stack([np.sin(4 * np.array(expected)), np.cos(4 * np.array(expected))], -1), atol=1e-4)
     assert not torch.allclose(batch[ENV_STATE_KEY], raw[ENV_STATE_KEY])  # the normalizer still ran after it
