@@ -677,7 +677,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
             row = {"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
                    "optim_step": schedule_state.optim_step, "wall_s": time.time() - start_time,
                    "collect_s": learn_start - collect_start, "learn_s": time.time() - learn_start,
-                   "learning_rate": learning_rate, "position_log_std": float(policy.log_std[:3].mean()),
+                   "learning_rate": learning_rate, "position_log_std": policy.log_std[:3].mean().item(),
                    **metrics, **summarize_episodes(trajectories.episodes, "train")}
             row["theta"] = schedule_state.theta(cfg.schedule)  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
