@@ -3,6 +3,13 @@ and the workers are reproducible: same seed and weights, same trajectories."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -127,9 +134,6 @@ def test_process_workers_match_inline_workers():
 
 def test_a_dead_worker_is_named_not_a_bare_eof_error():
     """A worker killed mid-run (e.g. by the OOM killer) gives an error naming it, its exit code and --resume."""
-    import os
-    import signal
-
     from lerobot_bcrl.rl.rollout import ProcessWorkers
 
     state = MLPAgent().module.state_dict()
@@ -143,6 +147,55 @@ def test_a_dead_worker_is_named_not_a_bare_eof_error():
             processes.collect(state, 5)
     finally:
         processes.close()
+
+
+class SlowReachOrigin(ReachOrigin):
+    """ReachOrigin at 100 steps/s: a rollout long enough to be killed in the middle of."""
+
+    def step(self, action):
+        time.sleep(0.01)
+        return super().step(action)
+
+
+def _alive(pid: int) -> bool:
+    """Running or sleeping; a zombie (dead, not yet reaped by whoever inherited it) counts as gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's parent-death signal is Linux's")
+def test_workers_die_with_a_killed_learner_instead_of_finishing_their_rollout():
+    """SIGKILL the learner while its workers are 100 s into a rollout: they are gone within seconds, not
+    left as orphans holding the cores until the rollout ends."""
+    driver = (
+        "from test_rl_learns import MLPAgent, SlowReachOrigin\n"
+        "from lerobot_bcrl.rl.rollout import ProcessWorkers\n"
+        "kwargs = [{'make_env': SlowReachOrigin, 'make_agent': MLPAgent, 'n_envs': 1, 'seed': i} for i in range(2)]\n"
+        "workers = ProcessWorkers(kwargs)\n"
+        "print(*[p.pid for p in workers.processes], flush=True)\n"
+        "workers.collect(MLPAgent().module.state_dict(), 10_000)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    learner = subprocess.Popen([sys.executable, "-c", driver], stdout=subprocess.PIPE, text=True, env=env)
+    worker_pids = []
+    try:
+        worker_pids = [int(pid) for pid in learner.stdout.readline().split()]
+        assert len(worker_pids) == 2 and all(_alive(pid) for pid in worker_pids), worker_pids
+        time.sleep(1.0)  # the collect command has reached the workers
+        assert all(_alive(pid) for pid in worker_pids)
+        learner.kill()
+        learner.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while any(_alive(pid) for pid in worker_pids) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(pid) for pid in worker_pids), f"orphaned rollout workers still running: {worker_pids}"
+    finally:
+        learner.kill()
+        for pid in worker_pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
 
 
 def test_sampled_evaluation_is_reproducible_and_leaves_the_training_rng_alone():

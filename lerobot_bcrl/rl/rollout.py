@@ -7,7 +7,11 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import multiprocessing as mp
+import os
+import signal
+import sys
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
@@ -236,7 +240,21 @@ class InlineWorkers:
             w.close()
 
 
+def _exit_with_the_learner() -> None:
+    """Linux: have the kernel send this worker SIGTERM when the learner dies, however it dies (`kill`, the OOM
+    killer), so that no orphan finishes a rollout nobody will read. Elsewhere the worker exits at its next
+    command (the closed pipe)."""
+    if not sys.platform.startswith("linux"):
+        return
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    learner = mp.parent_process()
+    if learner is not None and os.getppid() != learner.pid:  # the learner died before the prctl
+        os._exit(1)
+
+
 def _worker_main(connection, worker_kwargs: dict) -> None:
+    _exit_with_the_learner()
     torch.set_num_threads(1)
     worker = RolloutWorker(**worker_kwargs)
     connection.send("ready")
