@@ -177,7 +177,8 @@ def test_workers_die_with_a_killed_learner_instead_of_finishing_their_rollout():
         "print(*[p.pid for p in workers.processes], flush=True)\n"
         "workers.collect(MLPAgent().module.state_dict(), 10_000)\n"
     )
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    python_path = [str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path)}
     learner = subprocess.Popen([sys.executable, "-c", driver], stdout=subprocess.PIPE, text=True, env=env)
     worker_pids = []
     try:

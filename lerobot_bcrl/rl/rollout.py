@@ -243,7 +243,8 @@ class InlineWorkers:
 def _exit_with_the_learner() -> None:
     """Linux: have the kernel send this worker SIGTERM when the learner dies, however it dies (`kill`, the OOM
     killer), so that no orphan finishes a rollout nobody will read. Elsewhere the worker exits at its next
-    command (the closed pipe)."""
+    command (the closed pipe). The kernel watches the thread that started the worker: start `ProcessWorkers`
+    from one that lives as long as they do (bcrl-finetune: the main thread)."""
     if not sys.platform.startswith("linux"):
         return
     pr_set_pdeathsig = 1
