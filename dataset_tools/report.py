@@ -92,6 +92,8 @@ def summarize_run(run_dir: Path) -> dict:
         "seed": result.get("seed"),  # bcrl-finetune's --seed (runs before it was recorded: None)
         # an evaluated fine-tuning checkpoint (--total_env_steps=0) counts the env steps it was trained with
         "env_steps": result["env_steps"] + result.get("policy_env_steps", 0), **demo,
+        # --select=best_validation: the evaluated policy is the one chosen at these env steps, not the last
+        "selected_env_steps": result["selected_env_steps"] + result.get("policy_env_steps", 0) if result.get("validation") else None,
         "return": mean, "return_ci95": ci, "recovered_pct": 100 * mean / demo["demo_return"] if demo["demo_return"] else float("nan"),
         "success": success, "success_ci95": success_ci95,
         "steps_to_lift": float(np.mean(lifts)) if lifts else float("nan"), "episodes": len(episodes),
@@ -204,7 +206,8 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         if any_sampled:
             sampled_cell = f" {success_cell(r['sampled_success'], r['sampled_success_ci95'])} |" if r["sampled_success"] is not None else " - |"
         seed = "-" if r.get("seed") is None else r["seed"]
-        lines.append(f"| {r['sigma']:g} | {r['method']} | {r['env_steps']} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
+        steps = r["env_steps"] if r.get("selected_env_steps") is None else f"{r['env_steps']} (chosen: {r['selected_env_steps']})"
+        lines.append(f"| {r['sigma']:g} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
                      f" {r['steps_to_lift']:.1f} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
     cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],

@@ -137,3 +137,50 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     assert evaluated["env_steps"] == 0 and evaluated["policy_env_steps"] == 256
     assert evaluated["method"] == "BC+RL"  # a fine-tuned checkpoint, not "BC" because this run trained nothing
     assert result["seed"] == 1000 and evaluated["seed"] == 7  # the training seed, for bcrl-report's per-seed cells
+
+
+@pytest.mark.slow
+def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_seeds(lowdim_dataset_root, tmp_path):
+    from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET, checkpoint_name
+
+    run = tmp_path / "run"
+    args = [a for a in finetune_args(lowdim_dataset_root, run, 384) if not a.startswith("--eval_freq")]
+    # the dense reward, so that evaluations differ in return and the choice is not a tie of zeros
+    output = run_cli("bcrl-finetune", *args, "--policy.type=bcrl", "--policy.push_to_hub=false", "--env.dense_reward=true",
+                     "--select=best_validation", "--eval_freq=128", "--eval_episodes=2", "--final_eval_episodes=2")
+    rows = [r for r in csv.DictReader((run / "logs.csv").open()) if r["eval_return"]]
+    assert [int(r["env_steps"]) for r in rows] == [0, 128, 256, 384]  # the starting policy is a candidate
+    returns = [float(r["eval_return"]) for r in rows]
+    assert len(set(returns)) > 1  # the policies differ on the validation seeds
+    chosen = max(rows, key=lambda r: (float(r["eval_success"]), float(r["eval_return"])))  # max keeps the earliest
+    result = json.loads((run / "eval_final.json").read_text())
+    assert result["select"] == "best_validation" and result["env_steps"] == 384
+    assert result["selected_env_steps"] == int(chosen["env_steps"])
+    assert result["validation"]["return"] == pytest.approx(float(chosen["eval_return"]))
+    assert result["validation"]["seed_offset"] == VALIDATION_SEED_OFFSET and result["validation"]["episodes"] == 2
+    assert [e["seed"] for e in result["episodes"]] == [EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + 1]  # test seeds, not validation
+    best = run / "checkpoints" / "best"
+    assert best.resolve().name == checkpoint_name(result["selected_env_steps"])
+    assert (run / "checkpoints" / "last").resolve().name == checkpoint_name(384)  # resume goes on from the last
+    saved = json.loads((run / "checkpoints" / "last" / "training_state" / "training_step.json").read_text())
+    assert saved["best"]["env_steps"] == result["selected_env_steps"]  # a resumed run keeps the choice
+    assert f"the policy at {result['selected_env_steps']} env steps" in output and "checkpoints/best/" in output
+
+    # the final evaluation was the chosen checkpoint's: evaluating it alone gives the same episodes
+    run_cli("bcrl-finetune", f"--policy.path={best / 'pretrained_model'}", *finetune_args(lowdim_dataset_root, tmp_path / "again", 0),
+            "--env.dense_reward=true", "--final_eval_episodes=2")
+    again = json.loads((tmp_path / "again" / "eval_final.json").read_text())
+    assert [e["episode_return"] for e in again["episodes"]] == pytest.approx([e["episode_return"] for e in result["episodes"]])
+
+
+def test_best_validation_selection_needs_periodic_evaluations(tmp_path):
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+    from lerobot_bcrl.rl.ppo import FinetuneConfig, finetune
+
+    cfg = FinetuneConfig(policy=BCRLConfig(), select="best_validation", eval_freq=0, total_env_steps=128,
+                         output_dir=tmp_path / "run")
+    with pytest.raises(ValueError, match="--eval_freq > 0"):
+        finetune(cfg)
+    with pytest.raises(ValueError, match="choose one of"):
+        finetune(FinetuneConfig(policy=BCRLConfig(), select="best", output_dir=tmp_path / "run"))
+    assert not (tmp_path / "run").exists()  # refused before anything was written

@@ -31,7 +31,9 @@ from lerobot_bcrl.rl.normalization import OBS_NORMALIZATION_MODES, RewardScaler,
 from lerobot_bcrl.rl.rollout import EpisodeStats, RolloutWorkers, Trajectories, make_gym_env, make_workers
 from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
 
-EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes use seeds no dataset or training rollout draws
+EVAL_SEED_OFFSET = 1_000_000  # the final evaluation's (test) seeds: no dataset or training rollout draws them
+VALIDATION_SEED_OFFSET = 2_000_000  # the periodic evaluations' seeds, which may choose the result: never the test's
+SELECTIONS = ("last", "best_validation")
 FINETUNE_CONFIG_NAME = "finetune_config.json"
 ROLLOUT_POLICY_DIR = "rollout_policy"  # what the workers load once (config, processors); weights come per rollout
 
@@ -132,8 +134,12 @@ class FinetuneConfig:
     resume: bool = False
     seed: int = 1000
     label: str | None = None  # method name in the report; default: BC / BC+RL / PPO from scratch
-    eval_freq: int = 50_000  # env steps between evaluations (0: only at the end)
+    eval_freq: int = 50_000  # env steps between periodic evaluations, on validation seeds (0: only the final one)
     eval_episodes: int = 10
+    # The run's result (the final evaluation on the test seeds, `checkpoints/best`): "last", or "best_validation":
+    # the policy of the periodic evaluation with the highest success rate, then return (the earliest of equals),
+    # the starting policy included (evaluated before the first update), like robomimic's best-rollout checkpoints.
+    select: str = "last"
     final_eval_episodes: int = 50
     # Also run the final evaluation with actions sampled as in training (the stochastic policy PPO optimises;
     # the deterministic evaluation above is what lerobot-eval runs); reported as `eval_sampled_*`.
@@ -370,10 +376,19 @@ def checkpoint_name(env_steps: int) -> str:
     return f"{env_steps:09d}"
 
 
+def point_symlink(checkpoints_dir: Path, name: str, checkpoint_dir: Path) -> None:
+    """`checkpoints/<name>` -> `<step>`, replaced atomically."""
+    tmp_link = checkpoints_dir / f".{name}_tmp"
+    tmp_link.unlink(missing_ok=True)
+    tmp_link.symlink_to(checkpoint_dir.name)
+    os.replace(tmp_link, checkpoints_dir / name)
+
+
 def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postprocessor, optimizer,
                     schedule_state: ScheduleState, reward_scaler: RewardScaler | None,
-                    obs_stats: RunningObservationStats | None = None) -> Path:
-    """LeRobot's layout (`checkpoints/<step>/{pretrained_model,training_state}`, `last` symlink), atomically."""
+                    obs_stats: RunningObservationStats | None = None, best: dict | None = None) -> Path:
+    """LeRobot's layout (`checkpoints/<step>/{pretrained_model,training_state}`, `last` symlink), atomically.
+    `best`: the validation evaluation that chose the result so far (`--select=best_validation`), kept for a resume."""
     from lerobot.optim.optimizers import save_optimizer_state
     from lerobot.utils.random_utils import save_rng_state
 
@@ -392,16 +407,18 @@ def save_checkpoint(cfg: FinetuneConfig, env_steps: int, agent: BCRLAgent, postp
     save_rng_state(state_dir)
     training_step = {"env_steps": env_steps, **asdict(schedule_state), "theta": schedule_state.theta(cfg.schedule),
                      "reward_scaler": reward_scaler.state_dict() if reward_scaler else None,
-                     "obs_stats": obs_stats.state_dict() if obs_stats else None}
+                     "obs_stats": obs_stats.state_dict() if obs_stats else None, "best": best}
     (state_dir / TRAINING_STEP_FILE).write_text(json.dumps(training_step, indent=2))
     if final_dir.exists():
         shutil.rmtree(final_dir)
     os.replace(tmp_dir, final_dir)
-    last_tmp = checkpoints_dir / ".last_tmp"
-    last_tmp.unlink(missing_ok=True)
-    last_tmp.symlink_to(final_dir.name)
-    os.replace(last_tmp, checkpoints_dir / "last")
+    point_symlink(checkpoints_dir, "last", final_dir)
     return final_dir
+
+
+def better_on_validation(candidate: dict, best: dict | None) -> bool:
+    """Higher success rate, then higher return; on a tie the earlier policy stays."""
+    return best is None or (candidate["success"], candidate["return"]) > (best["success"], best["return"])
 
 
 def load_training_state(checkpoint_dir: Path, optimizer) -> dict:
@@ -586,7 +603,12 @@ def finetune(cfg: FinetuneConfig) -> dict:
         raise ValueError("give --policy.path=<BC pretrained_model> or --policy.type=bcrl (PPO from scratch)")
     if cfg.ppo.obs_normalization not in OBS_NORMALIZATION_MODES:
         raise ValueError(f"--ppo.obs_normalization={cfg.ppo.obs_normalization!r}: choose one of {OBS_NORMALIZATION_MODES}")
-    last_checkpoint = cfg.output_dir / "checkpoints" / "last"
+    if cfg.select not in SELECTIONS:
+        raise ValueError(f"--select={cfg.select!r}: choose one of {SELECTIONS}")
+    if cfg.select == "best_validation" and cfg.total_env_steps > 0 and not cfg.eval_freq:
+        raise ValueError("--select=best_validation chooses among the periodic evaluations: give --eval_freq > 0")
+    checkpoints_dir = cfg.output_dir / "checkpoints"
+    last_checkpoint = checkpoints_dir / "last"
     set_critic(cfg.policy, cfg.ppo.critic_hidden_dims)
     if cfg.schedule.type == "auto":  # BC+RL decays theta_t from 1; from scratch there is no BC term at all
         from_checkpoint = cfg.policy.pretrained_path is not None
@@ -609,6 +631,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
     agent = BCRLAgent(policy, preprocessor)
     optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.ppo.learning_rate, eps=1e-5)
     schedule_state, env_steps = ScheduleState(), 0
+    best = None  # the validation evaluation behind checkpoints/best (--select=best_validation)
     reward_scaler = RewardScaler(cfg.ppo.gamma, cfg.rollout.n_envs) if cfg.ppo.normalize_rewards else None
     obs_stats = None
     if cfg.ppo.obs_normalization == "running":
@@ -621,6 +644,7 @@ def finetune(cfg: FinetuneConfig) -> dict:
             reward_scaler.load_state_dict(training_step["reward_scaler"])
         if obs_stats and training_step.get("obs_stats"):
             obs_stats.load_state_dict(training_step["obs_stats"])
+        best = training_step.get("best")
         cfg.policy.pretrained_path = initial_policy_path  # the run's origin, for the method label
     elif cfg.total_env_steps > 0:
         with torch.no_grad():  # log_std covers [delta_pos / scale (3), quaternion (4)]
@@ -647,15 +671,35 @@ def finetune(cfg: FinetuneConfig) -> dict:
     logger = RunLogger(cfg, env_steps if cfg.resume else None)
     steps_per_iteration = cfg.rollout.steps_per_iteration
 
-    def evaluate(n_episodes: int, sample: bool = False) -> tuple[dict, list[EpisodeStats]]:
-        seeds = list(range(EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + n_episodes))
+    def evaluate(n_episodes: int, seed_offset: int, sample: bool = False) -> tuple[dict, list[EpisodeStats]]:
+        seeds = list(range(seed_offset, seed_offset + n_episodes))
         annotations = {"theta_t": schedule_state.theta(cfg.schedule), "env_steps": env_steps}
         episodes = workers.evaluate(agent.state_dict(), seeds, annotations, sample)
         return summarize_episodes(episodes, "eval_sampled" if sample else "eval"), episodes
 
+    def save() -> Path:
+        nonlocal last_save
+        last_save = env_steps
+        return save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler,
+                               obs_stats, best)
+
+    def validate() -> dict:
+        """A periodic evaluation; with --select=best_validation a better policy is saved as checkpoints/best."""
+        nonlocal best
+        metrics = evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)[0]
+        candidate = {"env_steps": env_steps, "success": metrics["eval_success"], "return": metrics["eval_return"]}
+        if cfg.select == "best_validation" and better_on_validation(candidate, best):
+            best = candidate
+            point_symlink(checkpoints_dir, "best", save())
+        return metrics
+
     start_time, last_eval, last_save = time.time(), env_steps, env_steps
     progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}")
     try:
+        if cfg.select == "best_validation" and cfg.total_env_steps > 0 and best is None:  # the starting policy
+            logger.log({"env_steps": env_steps, "ppo_iteration": schedule_state.ppo_iteration,
+                        "optim_step": schedule_state.optim_step, "theta": schedule_state.theta(cfg.schedule),
+                        "wall_s": time.time() - start_time, **validate()})
         while env_steps < cfg.total_env_steps:
             collect_start = time.time()
             position_log_std = position_log_std_at(cfg.ppo, env_steps, cfg.total_env_steps)
@@ -681,21 +725,22 @@ def finetune(cfg: FinetuneConfig) -> dict:
                    **metrics, **summarize_episodes(trajectories.episodes, "train")}
             row["theta"] = schedule_state.theta(cfg.schedule)  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
-                row.update(evaluate(cfg.eval_episodes)[0])
+                row.update(validate())
                 last_eval = env_steps
             logger.log(row)
             progress.update(steps_per_iteration)
             progress.set_postfix(theta=f"{row['theta']:.3f}", ret=f"{row.get('train_return', float('nan')):.0f}",
                                  succ=f"{row.get('train_success', float('nan')):.2f}")
-            if env_steps - last_save >= cfg.save_freq or env_steps >= cfg.total_env_steps:
-                save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler, obs_stats)
-                last_save = env_steps
+            if last_save != env_steps and (env_steps - last_save >= cfg.save_freq or env_steps >= cfg.total_env_steps):
+                save()
         progress.close()
         if env_steps == 0 or not last_checkpoint.exists():  # BC only: still leave a checkpoint to evaluate
-            save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule_state, reward_scaler, obs_stats)
-        final, episodes = evaluate(cfg.final_eval_episodes)
+            save()
+        if best is not None:  # the chosen policy, not the last, is the run's result
+            agent.load_state_dict(BCRLAgent.from_pretrained(checkpoints_dir / "best" / "pretrained_model").state_dict())
+        final, episodes = evaluate(cfg.final_eval_episodes, EVAL_SEED_OFFSET)
         if cfg.final_eval_sampled:
-            sampled, sampled_episodes = evaluate(cfg.final_eval_episodes, sample=True)
+            sampled, sampled_episodes = evaluate(cfg.final_eval_episodes, EVAL_SEED_OFFSET, sample=True)
             final.update(sampled, episodes_sampled=[asdict(e) for e in sampled_episodes])
     finally:
         workers.close()
@@ -705,7 +750,11 @@ def finetune(cfg: FinetuneConfig) -> dict:
               "dataset_repo_id": cfg.dataset.repo_id, "wall_s": time.time() - start_time,
               # the policy this run started from, and the env steps already behind it (an evaluated checkpoint's)
               "policy_path": str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None,
-              "policy_env_steps": policy_env_steps(cfg.policy.pretrained_path), **final,
+              "policy_env_steps": policy_env_steps(cfg.policy.pretrained_path),
+              # the policy evaluated below: the last, or the one --select=best_validation chose, and why
+              "select": cfg.select, "selected_env_steps": best["env_steps"] if best else env_steps,
+              "validation": {**best, "seed_offset": VALIDATION_SEED_OFFSET, "episodes": cfg.eval_episodes} if best else None,
+              **final,
               "episodes": [asdict(e) for e in episodes]}
     (cfg.output_dir / "eval_final.json").write_text(json.dumps(result, indent=2))
     return result
@@ -724,7 +773,12 @@ def finetune_cli(cfg: FinetuneConfig) -> None:
     if "eval_sampled_return" in result:
         lines.append(f"  with sampled actions: return {result['eval_sampled_return']:.1f}"
                      f" +/- {result['eval_sampled_return_ci95']:.1f}, success {100 * result['eval_sampled_success']:.0f} %")
-    lines += [f"  checkpoint: {cfg.output_dir / 'checkpoints' / 'last' / 'pretrained_model'}",
+    if result["validation"]:
+        chosen = result["validation"]
+        lines.append(f"  the policy at {result['selected_env_steps']} env steps, chosen on {chosen['episodes']} validation"
+                     f" episodes (success {100 * chosen['success']:.0f} %, return {chosen['return']:.1f})")
+    checkpoint = "best" if result["validation"] else "last"
+    lines += [f"  checkpoint: {cfg.output_dir / 'checkpoints' / checkpoint / 'pretrained_model'}",
               f"  logs: {cfg.output_dir / 'logs.csv'}; evaluation: {cfg.output_dir / 'eval_final.json'}"]
     print("\n".join(lines))
 
