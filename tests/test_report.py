@@ -184,3 +184,17 @@ def test_table_4_counts_the_cube_lost_after_the_lift(lowdim_dataset_root, tmp_pa
     assert f"| 1.5 of 4 (runs: 1, 2); {mean_lost:.1f} ({100 * mean_lost / demo:.1f} %) |" in row
     details = table(result["tables"], "Details")
     assert any(f"| 1, {100 * LIFT_REWARD / 4:.1f} |" in line for line in details)
+
+
+def test_a_run_whose_result_was_chosen_on_validation_says_when(lowdim_dataset_root, tmp_path):
+    bcrl = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0, 310.0], 102400)
+    result = json.loads((bcrl / "eval_final.json").read_text())
+    result.update(select="best_validation", selected_env_steps=64000,
+                  validation={"env_steps": 64000, "success": 1.0, "return": 305.0, "seed_offset": 2_000_000, "episodes": 20})
+    (bcrl / "eval_final.json").write_text(json.dumps(result))
+    last = fake_run(tmp_path / "last", lowdim_dataset_root, "BC+RL, last", [300.0], 102400)
+    rows = {r["method"]: r for r in report(ReportConfig(runs=[str(bcrl), str(last)], output_dir=tmp_path / "report"))["rows"]}
+    assert rows["BC+RL"]["env_steps"] == 102400 and rows["BC+RL"]["selected_env_steps"] == 64000  # the budget, then the pick
+    assert rows["BC+RL, last"]["selected_env_steps"] is None
+    details = (tmp_path / "report" / "report.md").read_text().split("Details")[1]
+    assert "| 102400 (chosen: 64000) |" in details and details.count("(chosen:") == 1
