@@ -24,6 +24,9 @@ EVAL_EPISODES=${EVAL_EPISODES:-50}
 # recipe (docs/RESULTS.md, twelfth and thirteenth sessions: gradient_share, log-std -1.5, 8 envs x 200 steps per
 # worker, the value's own [256, 256] MLP, schedule alpha 300 / beta 500 / phi 1500)
 BCRL_ARGS=${BCRL_ARGS:-}
+BCRL_CONFIG=${BCRL_CONFIG:-configs/bcrl_lift_${MODE}.json}   # e.g. configs/bcrl_lift_lowdim_best_validation.json
+# evaluation and checkpoint spacing of the BC+RL run, over the config's; BCRL_EVAL_ARGS="" keeps the config's own
+BCRL_EVAL_ARGS=${BCRL_EVAL_ARGS---eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true}
 SCHEDULE=${SCHEDULE:-}                    # schedule flags over the config's, e.g. "--schedule.alpha=640 --schedule.phi=3000"
 BC_NAME=${BC_NAME:-bc}                    # the BC checkpoint's folder under $OUT (trained if missing)
 BC_ONLY_NAME=${BC_ONLY_NAME:-bc_only}     # its "BC only" evaluation's folder
@@ -55,8 +58,8 @@ finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or s
   $BIN/bcrl-finetune "$@" $DATASET --final_eval_episodes="$EVAL_EPISODES" --output_dir="$OUT/$name" --resume=$resume
 }
 finetune "$BC_ONLY_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps=0
-finetune "$BCRL_NAME" --config_path="configs/bcrl_lift_${MODE}.json" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
-  $SCHEDULE --eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true $BCRL_ARGS \
+finetune "$BCRL_NAME" --config_path="$BCRL_CONFIG" --policy.path="$BC_CKPT" --total_env_steps="$RL_STEPS" \
+  $SCHEDULE $BCRL_EVAL_ARGS $BCRL_ARGS \
   ${BCRL_LABEL:+"--label=$BCRL_LABEL"}
 RUNS="$OUT/$BC_ONLY_NAME,$OUT/bcrl*"  # every BC+RL run here: seeds, continuations
 if [ "$SCRATCH_STEPS" != 0 ]; then

@@ -27,6 +27,7 @@ def parse(cls, path: Path):
 def test_every_config_file_is_covered():
     tested = {f"{kind}_lift_{mode}.json" for kind in ("bc", "bcrl", "ppo_scratch") for mode in ("lowdim", "images")}
     tested |= {f"record_sigma{sigma}.yaml" for sigma in SIGMAS} | {"record_multi_demonstrator.yaml"}
+    tested |= {"bcrl_lift_lowdim_best_validation.json"}
     names = {p.name for p in CONFIGS.iterdir() if p.suffix in (".json", ".yaml")}
     assert names == tested, f"configs without a test: {sorted(names - tested)}; tested but missing: {sorted(tested - names)}"
 
@@ -56,6 +57,28 @@ def test_bcrl_and_scratch_configs_load_as_finetune_configs(mode, obs_type):
     assert bcrl.ppo.critic_hidden_dims == (256, 256)
     # PPO from scratch: no BC term at any step
     assert scratch.schedule.type == "constant" and scratch.schedule.constant_theta == 0.0
+
+
+def test_best_validation_config_is_the_recipe_with_a_floor_a_smaller_std_and_a_chosen_result():
+    recipe = draccus.encode(parse(FinetuneConfig, CONFIGS / "bcrl_lift_lowdim.json"))
+    cfg = parse(FinetuneConfig, CONFIGS / "bcrl_lift_lowdim_best_validation.json")
+    changed = {"schedule.theta_min": cfg.schedule.theta_min, "ppo.reset_log_std": cfg.ppo.reset_log_std,
+               "total_env_steps": cfg.total_env_steps, "eval_freq": cfg.eval_freq, "eval_episodes": cfg.eval_episodes,
+               "save_freq": cfg.save_freq, "select": cfg.select}
+    assert changed == {"schedule.theta_min": 0.2, "ppo.reset_log_std": -2.0, "total_env_steps": 102400,
+                       "eval_freq": 12800, "eval_episodes": 20, "save_freq": 25600, "select": "best_validation"}
+    encoded = draccus.encode(cfg)
+    for dotted in changed:  # nothing else differs from the recipe
+        *parents, leaf = dotted.split(".")
+        target, source = encoded, recipe
+        for key in parents:
+            target, source = target[key], source[key]
+        target[leaf] = source[leaf]
+    encoded.pop("output_dir"), recipe.pop("output_dir")
+    assert encoded == recipe
+    # whole iterations: the evaluations (the candidates) fall on iteration ends, the last at the budget
+    per_iteration = cfg.rollout.steps_per_iteration
+    assert cfg.eval_freq % per_iteration == 0 and cfg.total_env_steps % cfg.eval_freq == 0
 
 
 def test_the_configs_critic_goes_onto_the_policy_or_is_refused():
