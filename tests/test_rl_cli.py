@@ -144,12 +144,18 @@ def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_s
     from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET, checkpoint_name
 
     run = tmp_path / "run"
-    args = [a for a in finetune_args(lowdim_dataset_root, run, 384) if not a.startswith("--eval_freq")]
     # the dense reward, so that evaluations differ in return and the choice is not a tie of zeros
-    output = run_cli("bcrl-finetune", *args, "--policy.type=bcrl", "--policy.push_to_hub=false", "--env.dense_reward=true",
-                     "--select=best_validation", "--eval_freq=128", "--eval_episodes=2", "--final_eval_episodes=2")
+    flags = ["--policy.type=bcrl", "--policy.push_to_hub=false", "--env.dense_reward=true", "--select=best_validation",
+             "--eval_freq=128", "--eval_episodes=2", "--final_eval_episodes=2"]
+    first = [a for a in finetune_args(lowdim_dataset_root, run, 256) if not a.startswith("--eval_freq")]
+    run_cli("bcrl-finetune", *first, *flags)
+    chosen_before = json.loads((run / "eval_final.json").read_text())["selected_env_steps"]
+    # resumed with a larger budget: the choice so far goes on from the checkpoint, the start is not evaluated again
+    args = [a for a in finetune_args(lowdim_dataset_root, run, 384) if not a.startswith("--eval_freq")]
+    output = run_cli("bcrl-finetune", *args, *flags, "--resume=true")
     rows = [r for r in csv.DictReader((run / "logs.csv").open()) if r["eval_return"]]
     assert [int(r["env_steps"]) for r in rows] == [0, 128, 256, 384]  # the starting policy is a candidate
+    assert chosen_before in (0, 128, 256)
     returns = [float(r["eval_return"]) for r in rows]
     assert len(set(returns)) > 1  # the policies differ on the validation seeds
     chosen = max(rows, key=lambda r: (float(r["eval_success"]), float(r["eval_return"])))  # max keeps the earliest
