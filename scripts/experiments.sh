@@ -17,6 +17,7 @@ MODE=${MODE:-lowdim}                      # lowdim | images
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
 EPISODES=${EPISODES:-100}                 # demonstrations (20 gave BC 62 % success at sigma 0.1, 100 gave 92 %)
 BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps (batch 256)
+BC_ARGS=${BC_ARGS:-}                      # extra lerobot-train flags, e.g. "--policy.cube_yaw_signed=true --seed=2"
 RL_STEPS=${RL_STEPS:-297600}              # env steps of BC+RL (the goal's 300k budget, in whole iterations)
 SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: skip it)
 EVAL_EPISODES=${EVAL_EPISODES:-50}
@@ -48,7 +49,7 @@ BC_CKPT="$OUT/$BC_NAME/checkpoints/last/pretrained_model"
 if [ ! -d "$BC_CKPT" ]; then
   echo "== BC: lerobot-train, $BC_STEPS steps =="
   $BIN/lerobot-train --config_path="configs/bc_lift_${MODE}.json" $DATASET --output_dir="$OUT/$BC_NAME" \
-    --steps="$BC_STEPS" --save_freq="$BC_STEPS" --log_freq=500
+    --steps="$BC_STEPS" --save_freq="$BC_STEPS" --log_freq=500 $BC_ARGS
 fi
 finetune() {  # finetune <run name> <args...>: run, or resume a killed run, or skip a finished one
   local name=$1; shift

@@ -12,6 +12,7 @@ from policy_fixtures import (  # noqa: F401  (fixtures)
     whole_dataset_batch,
 )
 
+from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy
 
 
@@ -139,7 +140,8 @@ def test_overfits_a_tiny_lowdim_dataset(lowdim_dataset_root):
     assert metrics["gripper_accuracy"] == 1.0
 
 
-def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_load(lowdim_dataset_root, tmp_path):
+@pytest.mark.parametrize("signed", [False, True])
+def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_load(lowdim_dataset_root, tmp_path, signed):
     import numpy as np
     from lerobot.policies.factory import make_pre_post_processors
 
@@ -147,20 +149,40 @@ def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_loa
     from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_CUBE_QUAT, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
 
     dataset = load_dataset(lowdim_dataset_root)
-    policy, preprocessor, postprocessor = make_bcrl_policy(dataset, cube_yaw_features=True)
+    policy, preprocessor, postprocessor = make_bcrl_policy(dataset, cube_yaw_features=True, cube_yaw_signed=signed)
     raw = whole_dataset_batch(dataset)
     batch = preprocessor(dict(raw))
-    expected = [geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[ENV_STATE_CUBE_QUAT].numpy())
-                for s, e in zip(raw[STATE_KEY], raw[ENV_STATE_KEY])]
-    np.testing.assert_allclose(batch[CUBE_YAW_KEY].numpy(), np.stack([np.sin(4 * np.array(expected)), np.cos(4 * np.array(expected))], -1), atol=1e-4)
+    expected = np.array([geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[ENV_STATE_CUBE_QUAT].numpy())
+                         for s, e in zip(raw[STATE_KEY], raw[ENV_STATE_KEY])])
+    columns = [np.sin(4 * expected), np.cos(4 * expected)] + ([expected / (np.pi / 4)] if signed else [])
+    np.testing.assert_allclose(batch[CUBE_YAW_KEY].numpy(), np.stack(columns, -1), atol=1e-4)
     assert not torch.allclose(batch[ENV_STATE_KEY], raw[ENV_STATE_KEY])  # the normalizer still ran after it
     loss, _ = policy.forward(dict(batch))
     assert torch.isfinite(loss)
     for part in (policy, preprocessor, postprocessor):
         part.save_pretrained(tmp_path)
     loaded = BCRLPolicy.from_pretrained(tmp_path)
-    assert loaded.config.cube_yaw_features
+    assert loaded.config.cube_yaw_features and loaded.config.cube_yaw_signed == signed
     loaded_pre, _ = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
     assert torch.equal(policy.select_action(preprocessor(dict(raw))), loaded.select_action(loaded_pre(dict(raw))))
     with pytest.raises(KeyError):  # without the step the policy must not silently run on missing features
         policy.select_action(make_bcrl_policy(dataset)[1](dict(raw)))
+
+
+def test_signed_cube_yaw_flips_at_45_degrees_where_sin_cos_cannot_tell():
+    import math
+
+    from lerobot_bcrl import geometry
+    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_KEY, STATE_KEY
+    from lerobot_bcrl.policies.bcrl.processor_bcrl import CubeYawFeaturesStep
+
+    state, env_state = torch.zeros(2, 16), torch.zeros(2, 10)
+    state[:, 3:7] = torch.tensor(geometry.IDENTITY_QUAT_XYZW, dtype=torch.float32)  # eef yaw 0
+    for row, cube_yaw_deg in enumerate((44.0, 46.0)):  # -44 degrees to the nearest face for the second
+        cube = geometry.rotvec_to_quat([0.0, 0.0, math.radians(cube_yaw_deg)])
+        env_state[row, 3:7] = torch.tensor(cube, dtype=torch.float32)
+    features = CubeYawFeaturesStep(signed=True).observation({STATE_KEY: state, ENV_STATE_KEY: env_state})[CUBE_YAW_KEY]
+    torch.testing.assert_close(features[:, 2], torch.tensor([44 / 45, -44 / 45]), atol=1e-5, rtol=0)
+    assert (features[0, :2] - features[1, :2]).norm() < 0.15  # (sin 4d, cos 4d) of 44 and -44 degrees: nearly alike
+    with pytest.raises(ValueError, match="cube_yaw_features=true"):
+        BCRLConfig(cube_yaw_signed=True)

@@ -11,7 +11,7 @@ from lerobot.configs import NormalizationMode
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
-from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY
+from lerobot_bcrl.features import CUBE_YAW_DIM, ENV_STATE_KEY, STATE_KEY
 from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M
 
 OBSERVATION_MODES = ("auto", "pixels", "low_dim")
@@ -40,6 +40,10 @@ class BCRLConfig(PreTrainedConfig):
     # preprocessor from the two quaternions (a cube looks the same every 90 degrees). From raw quaternions an MLP
     # does not learn the demonstrators' turn to the nearest face (docs/RESULTS.md, fifteenth session).
     cube_yaw_features: bool = False
+    # With cube_yaw_features, also the signed turn d / (pi/4) in [-1, 1). (sin 4d, cos 4d) is the same at d = +45
+    # and -45 degrees, where the demonstrators' turn flips sign (they turn to the nearest face): from it an MLP
+    # blends the two turns near the flip and turns slowly there (docs/RESULTS.md, twentieth session).
+    cube_yaw_signed: bool = False
     # The delta-position head predicts delta_pos / delta_pos_scale_m, so that its targets are O(1)
     # although the action itself is left unnormalized (ACTION uses IDENTITY, see normalization_mapping).
     delta_pos_scale_m: float = MAX_DELTA_POS_M
@@ -88,6 +92,13 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {self.observation_mode!r}")
         if self.delta_pos_scale_m <= 0:
             raise ValueError(f"delta_pos_scale_m must be > 0, got {self.delta_pos_scale_m}")
+        if self.cube_yaw_signed and not self.cube_yaw_features:
+            raise ValueError("bcrl: cube_yaw_signed adds to cube_yaw_features: set cube_yaw_features=true as well")
+
+    @property
+    def cube_yaw_dim(self) -> int:
+        """Width of `observation.cube_yaw`: 0 without cube_yaw_features, 2 (sin 4d, cos 4d), 3 with the signed d."""
+        return (CUBE_YAW_DIM + int(self.cube_yaw_signed)) if self.cube_yaw_features else 0
 
     @property
     def uses_images(self) -> bool:

@@ -21,7 +21,6 @@ from lerobot_bcrl.features import (
     AUX_GRASP_POS_KEY,
     AUX_GRASP_VALID_KEY,
     AUX_IMITATE_KEY,
-    CUBE_YAW_DIM,
     CUBE_YAW_KEY,
     ENV_STATE_KEY,
     STATE_KEY,
@@ -110,7 +109,7 @@ class BCRLModel(nn.Module):
             keypoint_dim = 2 * config.num_keypoints
         else:
             self.keypoint_encoder = None
-            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0] + (CUBE_YAW_DIM if config.cube_yaw_features else 0)
+            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0] + config.cube_yaw_dim
         self.trunk = mlp(keypoint_dim + state_dim, config.trunk_hidden_dims)
         trunk_dim = config.trunk_hidden_dims[-1] if config.trunk_hidden_dims else keypoint_dim + state_dim
         self.delta_pos_head = nn.Linear(trunk_dim, 3)

@@ -7,6 +7,7 @@ Postprocessor: unnormalize (identity for ACTION) -> cpu. Both are LeRobot's defa
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,19 +71,28 @@ def yaw_of(quat_xyzw: torch.Tensor) -> torch.Tensor:
 @ProcessorStepRegistry.register(name="bcrl_cube_yaw_features")
 class CubeYawFeaturesStep(ObservationProcessorStep):
     """`observation.cube_yaw` = (sin 4d, cos 4d), d the yaw from the fingers to the cube (geometry.cube_yaw_error
-    up to whole quarter turns), from the raw quaternions: run it before the normalizer."""
+    up to whole quarter turns), from the raw quaternions: run it before the normalizer. With `signed`, also
+    d / (pi/4) itself, in [-1, 1): the turn to the nearest face, which flips sign at +-45 degrees."""
+
+    signed: bool = False
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         eef_quat = observation[STATE_KEY][..., STATE_EEF_QUAT]
         cube_quat = observation[ENV_STATE_KEY][..., ENV_STATE_CUBE_QUAT]
-        four_d = 4 * (yaw_of(cube_quat) - yaw_of(eef_quat))
-        observation[CUBE_YAW_KEY] = torch.stack([torch.sin(four_d), torch.cos(four_d)], dim=-1)
+        d = yaw_of(cube_quat) - yaw_of(eef_quat)
+        features = [torch.sin(4 * d), torch.cos(4 * d)]
+        if self.signed:  # geometry.cube_yaw_error, batched
+            features.append((torch.remainder(d + math.pi / 4, math.pi / 2) - math.pi / 4) / (math.pi / 4))
+        observation[CUBE_YAW_KEY] = torch.stack(features, dim=-1)
         return observation
+
+    def get_config(self) -> dict[str, Any]:
+        return {"signed": self.signed}
 
     def transform_features(
         self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
     ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
-        features[PipelineFeatureType.OBSERVATION][CUBE_YAW_KEY] = PolicyFeature(type=FeatureType.ENV, shape=(CUBE_YAW_DIM,))
+        features[PipelineFeatureType.OBSERVATION][CUBE_YAW_KEY] = PolicyFeature(type=FeatureType.ENV, shape=(CUBE_YAW_DIM + int(self.signed),))
         return features
 
 
@@ -94,7 +104,7 @@ def make_bcrl_pre_post_processors(
     PolicyProcessorPipeline[PolicyAction, PolicyAction],
 ]:
     steps = make_default_policy_processor_steps(config, dataset_stats)
-    yaw = [CubeYawFeaturesStep()] if config.cube_yaw_features else []
+    yaw = [CubeYawFeaturesStep(signed=config.cube_yaw_signed)] if config.cube_yaw_features else []
     return make_policy_processor_pipelines(
         input_steps=[steps.rename_observations, steps.add_batch_dim, steps.to_device, *yaw, steps.normalize],
         output_steps=[steps.unnormalize, steps.to_cpu],
