@@ -23,9 +23,13 @@ AUX_IMITATE_KEY = "aux.imitate"
 # what the controller was commanded; robosuite's OSC covers only part of each command, so the two differ.
 AUX_PROPRIO_ACTION_KEY = "aux.proprio_action"
 # Derived by the bcrl preprocessor (BCRLConfig.cube_yaw_features), never stored: sin and cos of 4x the yaw that
-# turns the fingers onto the nearest cube face, from observation.state's and environment_state's quaternions.
+# turns the fingers onto the nearest cube face, from observation.state's and environment_state's quaternions,
+# and with BCRLConfig.cube_yaw_signed that yaw itself over pi/4.
 CUBE_YAW_KEY = "observation.cube_yaw"
-CUBE_YAW_DIM = 2
+
+
+def cube_yaw_dim(signed: bool) -> int:
+    return 3 if signed else 2
 REWARD_KEY = "next.reward"
 # robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None); the
 # env pays it, the report turns returns back into lifted steps with it.

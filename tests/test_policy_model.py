@@ -173,14 +173,14 @@ def test_signed_cube_yaw_flips_at_45_degrees_where_sin_cos_cannot_tell():
     import math
 
     from lerobot_bcrl import geometry
-    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_KEY, STATE_KEY
+    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_CUBE_QUAT, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
     from lerobot_bcrl.policies.bcrl.processor_bcrl import CubeYawFeaturesStep
 
     state, env_state = torch.zeros(2, 16), torch.zeros(2, 10)
-    state[:, 3:7] = torch.tensor(geometry.IDENTITY_QUAT_XYZW, dtype=torch.float32)  # eef yaw 0
+    state[:, STATE_EEF_QUAT] = torch.tensor(geometry.IDENTITY_QUAT_XYZW, dtype=torch.float32)  # eef yaw 0
     for row, cube_yaw_deg in enumerate((44.0, 46.0)):  # -44 degrees to the nearest face for the second
         cube = geometry.rotvec_to_quat([0.0, 0.0, math.radians(cube_yaw_deg)])
-        env_state[row, 3:7] = torch.tensor(cube, dtype=torch.float32)
+        env_state[row, ENV_STATE_CUBE_QUAT] = torch.tensor(cube, dtype=torch.float32)
     features = CubeYawFeaturesStep(signed=True).observation({STATE_KEY: state, ENV_STATE_KEY: env_state})[CUBE_YAW_KEY]
     torch.testing.assert_close(features[:, 2], torch.tensor([44 / 45, -44 / 45]), atol=1e-5, rtol=0)
     assert (features[0, :2] - features[1, :2]).norm() < 0.15  # (sin 4d, cos 4d) of 44 and -44 degrees: nearly alike

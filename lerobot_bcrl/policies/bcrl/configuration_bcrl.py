@@ -11,7 +11,7 @@ from lerobot.configs import NormalizationMode
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
-from lerobot_bcrl.features import CUBE_YAW_DIM, ENV_STATE_KEY, STATE_KEY
+from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY, cube_yaw_dim
 from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M
 
 OBSERVATION_MODES = ("auto", "pixels", "low_dim")
@@ -98,7 +98,7 @@ class BCRLConfig(PreTrainedConfig):
     @property
     def cube_yaw_dim(self) -> int:
         """Width of `observation.cube_yaw`: 0 without cube_yaw_features, 2 (sin 4d, cos 4d), 3 with the signed d."""
-        return (CUBE_YAW_DIM + int(self.cube_yaw_signed)) if self.cube_yaw_features else 0
+        return cube_yaw_dim(self.cube_yaw_signed) if self.cube_yaw_features else 0
 
     @property
     def uses_images(self) -> bool:

@@ -29,12 +29,12 @@ from lerobot_bcrl.features import (
     AUX_GRASP_VALID_KEY,
     AUX_IMITATE_KEY,
     AUX_PROPRIO_ACTION_KEY,
-    CUBE_YAW_DIM,
     CUBE_YAW_KEY,
     ENV_STATE_CUBE_QUAT,
     ENV_STATE_KEY,
     STATE_EEF_QUAT,
     STATE_KEY,
+    cube_yaw_dim,
 )
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
@@ -92,7 +92,7 @@ class CubeYawFeaturesStep(ObservationProcessorStep):
     def transform_features(
         self, features: dict[PipelineFeatureType, dict[str, PolicyFeature]]
     ) -> dict[PipelineFeatureType, dict[str, PolicyFeature]]:
-        features[PipelineFeatureType.OBSERVATION][CUBE_YAW_KEY] = PolicyFeature(type=FeatureType.ENV, shape=(CUBE_YAW_DIM + int(self.signed),))
+        features[PipelineFeatureType.OBSERVATION][CUBE_YAW_KEY] = PolicyFeature(type=FeatureType.ENV, shape=(cube_yaw_dim(self.signed),))
         return features
 
 
