@@ -30,6 +30,8 @@ CUBE_YAW_KEY = "observation.cube_yaw"
 
 def cube_yaw_dim(signed: bool) -> int:
     return 3 if signed else 2
+
+
 REWARD_KEY = "next.reward"
 # robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None); the
 # env pays it, the report turns returns back into lifted steps with it.

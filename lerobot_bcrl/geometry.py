@@ -92,10 +92,15 @@ def yaw_of(quat_xyzw: np.ndarray) -> float:
     return float(np.arctan2(2 * (x * y + z * w), 1 - 2 * (y * y + z * z)))
 
 
+def nearest_face_turn(yaw_difference):
+    """A cube-minus-fingers yaw difference (rad) wrapped to [-pi/4, pi/4): the turn onto the nearest face (a cube
+    is symmetric every 90 degrees). Floats, numpy arrays and torch tensors alike."""
+    return (yaw_difference + np.pi / 4) % (np.pi / 2) - np.pi / 4
+
+
 def cube_yaw_error(eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> float:
-    """The yaw (rad, in [-pi/4, pi/4)) that lines the fingers up with the nearest face of a cube: a cube is
-    symmetric every 90 degrees."""
-    return (yaw_of(cube_quat_xyzw) - yaw_of(eef_quat_xyzw) + np.pi / 4) % (np.pi / 2) - np.pi / 4
+    """The yaw (rad, in [-pi/4, pi/4)) that lines the fingers up with the nearest face of a cube."""
+    return nearest_face_turn(yaw_of(cube_quat_xyzw) - yaw_of(eef_quat_xyzw))
 
 
 def quat_slerp(q0_xyzw: np.ndarray, q1_xyzw: np.ndarray, fraction: float | np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from lerobot.processor import (
     make_policy_processor_pipelines,
 )
 
+from lerobot_bcrl import geometry
 from lerobot_bcrl.features import (
     AUX_EEF_POS_KEY,
     AUX_GRASP_POS_KEY,
@@ -81,8 +82,8 @@ class CubeYawFeaturesStep(ObservationProcessorStep):
         cube_quat = observation[ENV_STATE_KEY][..., ENV_STATE_CUBE_QUAT]
         d = yaw_of(cube_quat) - yaw_of(eef_quat)
         features = [torch.sin(4 * d), torch.cos(4 * d)]
-        if self.signed:  # geometry.cube_yaw_error, batched
-            features.append((torch.remainder(d + math.pi / 4, math.pi / 2) - math.pi / 4) / (math.pi / 4))
+        if self.signed:
+            features.append(geometry.nearest_face_turn(d) / (math.pi / 4))
         observation[CUBE_YAW_KEY] = torch.stack(features, dim=-1)
         return observation
 
