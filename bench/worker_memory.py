@@ -1,9 +1,11 @@
 """Resident memory of one bcrl-finetune rollout worker process with 0, 1, 2 and 8 envs (after a 200-step
 rollout), against baselines measured in the same run: a spawned interpreter that imported torch (spawn re-imports
-this script, and with it torch), and one that also holds a raw robosuite Lift env stepped 200 times. Prints one JSON line (MiB; `private` = private dirty pages, what a
-process costs the machine beyond the shared libraries; `pss` shares those pages out among the processes), with the
-MjModel buffer and the MjData arena MuJoCo sizes for robosuite's Lift (the arena, from its njmax/nconmax 5000, is
-reserved address space: pages are resident only where used)."""
+this script, and with it torch), and one that also holds a raw robosuite Lift env stepped 200 times.
+
+Prints one JSON line, in MiB: `private` = private dirty pages, what a process costs the machine beyond the shared
+libraries; `pss` shares those pages out among the processes. With them the MjModel buffer and the MjData arena
+MuJoCo sizes for robosuite's Lift (the arena, from its njmax/nconmax 5000, is reserved address space: pages are
+resident only where used)."""
 
 from __future__ import annotations
 
