@@ -6,35 +6,51 @@
 # report takes every $OUT/bcrl* run and puts the seeds of one cell together); BCRL_LABEL="BC+RL, c1 0.1" names
 # a variant in the report (its runs get their own column).
 #   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
-# Sizes come from the environment (defaults: what docs/RESULTS.md measured on 2 cores); a finished step
-# whose output exists is skipped, a killed BC+RL or scratch run resumes from its last checkpoint.
+# The low-dim defaults are the recipe docs/RESULTS.md measured last (twentieth to twenty-second sessions):
+# demonstrations with planned misses and retries (configs/record_lowdim_retry.yaml), BC with the signed cube-yaw
+# feature, BC+RL with configs/bcrl_lift_lowdim_best_validation.json for 102.4k env steps (204.8k at sigma 0.1,
+# where the validation returns were still rising at 102.4k). Sessions before the twenty-second ran this script
+# with other defaults: RECORD_ARGS="" BC_ARGS="" BCRL_CONFIG=configs/bcrl_lift_lowdim.json RL_STEPS=297600
+# SCRATCH_STEPS=297600 and BCRL_EVAL_ARGS as the images mode's below restore them.
+# Sizes come from the environment; a finished step whose output exists is skipped, a killed BC+RL or scratch run
+# resumes from its last checkpoint.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 BIN=.venv/bin
 SIGMA=${SIGMA:-0.1}
 MODE=${MODE:-lowdim}                      # lowdim | images
+if [ "$MODE" = lowdim ]; then             # the recipe (see above)
+  recipe_record="--config_path=configs/record_lowdim_retry.yaml"
+  recipe_bc="--policy.cube_yaw_signed=true"
+  recipe_bcrl_config=configs/bcrl_lift_lowdim_best_validation.json
+  recipe_rl_steps=$([ "$SIGMA" = 0.1 ] && echo 204800 || echo 102400)
+  recipe_eval_args=""                     # the config's own: 20 validation episodes every 12.8k env steps
+else                                      # images: the thirteenth session's low-dim recipe, not run at its budget
+  recipe_record=""
+  recipe_bc=""
+  recipe_bcrl_config=configs/bcrl_lift_images.json
+  recipe_rl_steps=297600
+  recipe_eval_args="--eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true"
+fi
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
 EPISODES=${EPISODES:-100}                 # demonstrations (20 gave BC 62 % success at sigma 0.1, 100 gave 92 %)
+# extra bcrl-record flags (RECORD_ARGS="" records first-try demonstrations only)
+RECORD_ARGS=${RECORD_ARGS-$recipe_record}
 BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps (batch 256)
-BC_ARGS=${BC_ARGS:-}                      # extra lerobot-train flags, e.g. "--policy.cube_yaw_signed=true --seed=2"
-RL_STEPS=${RL_STEPS:-297600}              # env steps of BC+RL (the goal's 300k budget, in whole iterations)
-SCRATCH_STEPS=${SCRATCH_STEPS:-$RL_STEPS} # env steps of PPO from scratch (0: skip it)
+BC_ARGS=${BC_ARGS-$recipe_bc}             # extra lerobot-train flags, e.g. "--seed=2"
+RL_STEPS=${RL_STEPS:-$recipe_rl_steps}    # env steps of BC+RL
+SCRATCH_STEPS=${SCRATCH_STEPS:-297600}    # env steps of PPO from scratch (the goal's 300k budget, whole iterations; 0: skip it)
 EVAL_EPISODES=${EVAL_EPISODES:-50}
-# extra bcrl-finetune flags for the BC+RL run, e.g. "--seed=2"; configs/bcrl_lift_${MODE}.json holds the measured
-# recipe (docs/RESULTS.md, twelfth and thirteenth sessions: gradient_share, log-std -1.5, 8 envs x 200 steps per
-# worker, the value's own [256, 256] MLP, schedule alpha 300 / beta 500 / phi 1500)
-BCRL_ARGS=${BCRL_ARGS:-}
-BCRL_CONFIG=${BCRL_CONFIG:-configs/bcrl_lift_${MODE}.json}   # e.g. configs/bcrl_lift_lowdim_best_validation.json
+BCRL_ARGS=${BCRL_ARGS:-}                  # extra bcrl-finetune flags for the BC+RL run, e.g. "--seed=2"
+BCRL_CONFIG=${BCRL_CONFIG:-$recipe_bcrl_config}
 # evaluation and checkpoint spacing of the BC+RL run, over the config's; BCRL_EVAL_ARGS="" keeps the config's own
-BCRL_EVAL_ARGS=${BCRL_EVAL_ARGS---eval_freq=20480 --eval_episodes=10 --save_freq=20480 --final_eval_sampled=true}
+BCRL_EVAL_ARGS=${BCRL_EVAL_ARGS-$recipe_eval_args}
 SCHEDULE=${SCHEDULE:-}                    # schedule flags over the config's, e.g. "--schedule.alpha=640 --schedule.phi=3000"
 BC_NAME=${BC_NAME:-bc}                    # the BC checkpoint's folder under $OUT (trained if missing)
 BC_ONLY_NAME=${BC_ONLY_NAME:-bc_only}     # its "BC only" evaluation's folder
 BCRL_NAME=${BCRL_NAME:-bcrl}              # the BC+RL run's folder under $OUT
 BCRL_LABEL=${BCRL_LABEL:-}                # its name in the report, spaces allowed (default: BC+RL)
-# extra bcrl-record flags, e.g. RECORD_ARGS="--miss_probability=0.3" (demonstrations with planned misses and retries)
-RECORD_ARGS=${RECORD_ARGS:-}
 DATA="$OUT/data"
 DATASET="--dataset.repo_id=local/lift_${MODE}_sigma${SIGMA} --dataset.root=$DATA"
 IMAGES=$([ "$MODE" = images ] && echo true || echo false)

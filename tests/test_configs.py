@@ -27,7 +27,7 @@ def parse(cls, path: Path):
 def test_every_config_file_is_covered():
     tested = {f"{kind}_lift_{mode}.json" for kind in ("bc", "bcrl", "ppo_scratch") for mode in ("lowdim", "images")}
     tested |= {f"record_sigma{sigma}.yaml" for sigma in SIGMAS} | {"record_multi_demonstrator.yaml"}
-    tested |= {"bcrl_lift_lowdim_best_validation.json"}
+    tested |= {"bcrl_lift_lowdim_best_validation.json", "record_lowdim_retry.yaml"}
     names = {p.name for p in CONFIGS.iterdir() if p.suffix in (".json", ".yaml")}
     assert names == tested, f"configs without a test: {sorted(names - tested)}; tested but missing: {sorted(tested - names)}"
 
@@ -107,3 +107,11 @@ def test_multi_demonstrator_config_has_several_demonstrators():
     cfg = parse(RecordConfig, CONFIGS / "record_multi_demonstrator.yaml")
     noise = [(d.noise_std, d.noise_mean, d.noise_correlation) for d in cfg.demonstrators]
     assert len(noise) >= 2 and len(set(noise)) == len(noise)  # distinct demonstrators
+
+
+def test_retry_record_config_is_the_recipes_demonstrations_at_any_sigma():
+    cfg = draccus.parse(RecordConfig, config_path=str(CONFIGS / "record_lowdim_retry.yaml"), args=["--sigma=0.01"])
+    assert cfg.sigma == 0.01 and not cfg.demonstrators and cfg.expert == "scripted"
+    assert cfg.images is False and cfg.n_episodes == 100 and cfg.seed == 0
+    assert cfg.miss_probability == 0.3 and cfg.reopen_on_empty_grasp is True
+    assert tuple(cfg.miss_height_range_m) == (0.015, 0.045) and cfg.miss_max_aside_m == 0.035

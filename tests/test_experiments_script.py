@@ -1,0 +1,51 @@
+"""scripts/experiments.sh (`make experiments`) at a tiny size: its low-dim defaults are the recipe docs/RESULTS.md
+measured last (retry demonstrations, BC with the signed cube-yaw feature, BC+RL from the best-validation config),
+and its steps chain into a report."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from lerobot_bcrl.rl.ppo import FINETUNE_CONFIG_NAME
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# sizes only: every choice of the recipe comes from the script's defaults
+TINY = {
+    "EPISODES": "2", "BC_STEPS": "4", "RL_STEPS": "128", "SCRATCH_STEPS": "0", "EVAL_EPISODES": "1",
+    "BCRL_ARGS": "--rollout.n_workers=0 --rollout.envs_per_worker=1 --rollout.steps_per_env=64 --eval_freq=64"
+                 " --eval_episodes=1 --save_freq=64 --env.episode_length=40 --ppo.minibatch_size=32"
+                 " --bc_batch_size=32 --tensorboard=false",
+}
+
+
+@pytest.mark.slow
+def test_experiments_script_runs_the_recipe_by_default(tmp_path):
+    out = tmp_path / "sigma0"
+    env = {**os.environ, **TINY, "SIGMA": "0", "OUT": str(out)}
+    env.pop("RECORD_ARGS", None), env.pop("BC_ARGS", None), env.pop("BCRL_CONFIG", None)
+    result = subprocess.run(["bash", "scripts/experiments.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
+
+    recorded = json.loads((out / "data" / "meta" / "bcrl.json").read_text())["record_config"]
+    assert recorded["sigma"] == 0 and recorded["images"] is False and recorded["n_episodes"] == 2
+    assert recorded["miss_probability"] == 0.3 and recorded["reopen_on_empty_grasp"] is True
+    assert recorded["miss_height_range_m"] == [0.015, 0.045] and recorded["miss_max_aside_m"] == 0.035
+
+    bc = json.loads((out / "bc" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert bc["cube_yaw_features"] is True and bc["cube_yaw_signed"] is True and bc["quat_weight"] == 1000.0
+
+    bcrl = json.loads((out / "bcrl" / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG_NAME).read_text())
+    assert bcrl["select"] == "best_validation" and bcrl["schedule"]["theta_min"] == 0.2
+    assert bcrl["ppo"]["reset_log_std"] == -2.0 and bcrl["ppo"]["critic_hidden_dims"] == [256, 256]
+    final = json.loads((out / "bcrl" / "eval_final.json").read_text())
+    assert final["env_steps"] == 128 and final["selected_env_steps"] in (0, 64, 128)
+    assert json.loads((out / "bc_only" / "eval_final.json").read_text())["method"] == "BC"
+    report = (out / "report" / "report.md").read_text()
+    assert "BC+RL" in report and "Table 1" in report
