@@ -73,6 +73,15 @@ def steps_lost_after_lift(episode: dict) -> float:
     return max(0.0, episode["length"] - episode["steps_to_lift"] + 1 - lifted_steps)
 
 
+def bc_training_seed(policy_path: str | None) -> int | None:
+    """lerobot-train's --seed of the checkpoint a run started from (its train_config.json), so that runs from
+    different BC checkpoints tell apart; None for PPO from scratch or a start that was not lerobot-train's."""
+    train_config = Path(policy_path) / "train_config.json" if policy_path else None
+    if train_config is None or not train_config.is_file():
+        return None
+    return json.loads(train_config.read_text()).get("seed")
+
+
 def summarize_run(run_dir: Path) -> dict:
     result = json.loads((run_dir / "eval_final.json").read_text())
     episodes = result["episodes"]
@@ -90,6 +99,7 @@ def summarize_run(run_dir: Path) -> dict:
         "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
         "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"],
         "seed": result.get("seed"),  # bcrl-finetune's --seed (runs before it was recorded: None)
+        "bc_seed": bc_training_seed(result.get("policy_path")),
         # an evaluated fine-tuning checkpoint (--total_env_steps=0) counts the env steps it was trained with
         "env_steps": result["env_steps"] + result.get("policy_env_steps", 0), **demo,
         # --select=best_validation: the evaluated policy is the one chosen at these env steps, not the last
@@ -197,7 +207,7 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
             demo = next(r for r in rows if (r["sigma"], r["dataset_root"]) == dataset)
             lines.append("| " + " | ".join(first_columns(demo) + [cell_text((dataset, k)) for k in headers]) + " |")
     any_sampled = any(r["sampled_success"] is not None for r in rows)
-    lines += ["", "Details", "", "| sigma | method | env steps | seed | episodes | return (95 % CI) | % recovered |"
+    lines += ["", "Details", "", "| sigma | method | env steps | seed (BC's) | episodes | return (95 % CI) | % recovered |"
               " success (95 % CI) |" + (" success, sampled actions |" if any_sampled else "") + " steps to lift |"
               " lost after lift: episodes, return | run |",
               "|---" * (11 + any_sampled) + "|"]
@@ -206,6 +216,8 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         if any_sampled:
             sampled_cell = f" {success_cell(r['sampled_success'], r['sampled_success_ci95'])} |" if r["sampled_success"] is not None else " - |"
         seed = "-" if r.get("seed") is None else r["seed"]
+        if r.get("bc_seed") is not None:
+            seed = f"{seed} (BC {r['bc_seed']})"
         steps = r["env_steps"] if r.get("selected_env_steps") is None else f"{r['env_steps']} (chosen: {r['selected_env_steps']})"
         lines.append(f"| {r['sigma']:g} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"

@@ -23,11 +23,12 @@ def episode_dicts(returns: list[float]) -> list[dict]:
 
 
 def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int,
-             sampled_returns: list[float] | None = None, policy_env_steps: int = 0, seed: int = 1000) -> Path:
+             sampled_returns: list[float] | None = None, policy_env_steps: int = 0, seed: int = 1000,
+             policy_path: Path | None = None) -> Path:
     run_dir.mkdir(parents=True)
     result = {"method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
               "dataset_repo_id": f"local/{dataset_root.name}", "episodes": episode_dicts(returns),
-              "policy_env_steps": policy_env_steps, "seed": seed}
+              "policy_env_steps": policy_env_steps, "seed": seed, "policy_path": str(policy_path) if policy_path else None}
     if sampled_returns is not None:
         result["episodes_sampled"] = episode_dicts(sampled_returns)
     (run_dir / "eval_final.json").write_text(json.dumps(result))
@@ -198,3 +199,20 @@ def test_a_run_whose_result_was_chosen_on_validation_says_when(lowdim_dataset_ro
     assert rows["BC+RL, last"]["selected_env_steps"] is None
     details = (tmp_path / "report" / "report.md").read_text().split("Details")[1]
     assert "| 102400 (chosen: 64000) |" in details and details.count("(chosen:") == 1
+
+
+def test_details_name_the_bc_checkpoints_training_seed(lowdim_dataset_root, tmp_path):
+    bc_checkpoints = []
+    for bc_seed in (1000, 3):  # two lerobot-train checkpoints: train_config.json holds their --seed
+        checkpoint = tmp_path / f"bc_seed{bc_seed}" / "pretrained_model"
+        checkpoint.mkdir(parents=True)
+        (checkpoint / "train_config.json").write_text(json.dumps({"seed": bc_seed, "steps": 3000}))
+        bc_checkpoints.append(checkpoint)
+    runs = [fake_run(tmp_path / f"bcrl_from_{c.parent.name}", lowdim_dataset_root, "BC+RL", [300.0, 200.0], 102400,
+                     seed=1000, policy_path=c) for c in bc_checkpoints]
+    runs.append(fake_run(tmp_path / "scratch", lowdim_dataset_root, "PPO from scratch", [0.0, 0.0], 102400, seed=2))
+    details = table(report(ReportConfig(runs=[str(r) for r in runs], output_dir=tmp_path / "report"))["tables"], "Details")
+    assert "| seed (BC's) |" in details[0]
+    rows = {line.split("`")[-2]: line for line in details[2:]}
+    assert "| 1000 (BC 1000) |" in rows[str(runs[0])] and "| 1000 (BC 3) |" in rows[str(runs[1])]
+    assert "| 2 |" in rows[str(runs[2])]  # no BC checkpoint behind it
