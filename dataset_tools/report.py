@@ -292,10 +292,15 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
 
 
 def plot_label(row: dict, rows: list[dict]) -> str:
-    """Method and sigma; the seed too where other runs would carry the same label."""
+    """Method and sigma; the seed too where other runs would carry the same label, and the BC checkpoint's
+    training seed where runs of one seed started from different BC checkpoints."""
     label = f"{row['method']} sigma={row['sigma']:g}"
     twins = [r for r in rows if (r["method"], r["sigma"]) == (row["method"], row["sigma"])]
-    return label + (f" seed={row['seed']}" if len(twins) > 1 and row.get("seed") is not None else "")
+    if len(twins) > 1 and row.get("seed") is not None:
+        label += f" seed={row['seed']}"
+        if len({r.get("bc_seed") for r in twins if r.get("seed") == row["seed"]}) > 1:
+            label += f" BC seed={row.get('bc_seed')}"
+    return label
 
 
 def report(cfg: ReportConfig) -> dict:

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
-from dataset_tools.report import ReportConfig, demonstrators, report, steps_lost_after_lift, trailing_mean, wilson_ci95
+from dataset_tools.report import (ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
+                                  wilson_ci95)
 from lerobot_bcrl.features import LIFT_REWARD
 from lerobot_bcrl.rl.ppo import LOG_COLUMNS
 from lerobot_bcrl.rl.rollout import EpisodeStats
@@ -216,3 +217,12 @@ def test_details_name_the_bc_checkpoints_training_seed(lowdim_dataset_root, tmp_
     rows = {line.split("`")[-2]: line for line in details[2:]}
     assert "| 1000 (BC 1000) |" in rows[str(runs[0])] and "| 1000 (BC 3) |" in rows[str(runs[1])]
     assert "| 2 |" in rows[str(runs[2])]  # no BC checkpoint behind it
+
+
+def test_plot_labels_tell_runs_apart_by_seed_and_then_by_bc_seed():
+    def row(seed, bc_seed, sigma=0.0):
+        return {"method": "BC+RL", "sigma": sigma, "seed": seed, "bc_seed": bc_seed}
+    rows = [row(1000, 1000), row(1000, 3), row(2, 3), row(1000, 3, sigma=0.1)]
+    labels = [plot_label(r, rows) for r in rows]
+    assert labels == ["BC+RL sigma=0 seed=1000 BC seed=1000", "BC+RL sigma=0 seed=1000 BC seed=3",
+                      "BC+RL sigma=0 seed=2", "BC+RL sigma=0.1"]
