@@ -28,7 +28,8 @@ TINY = {
 def test_experiments_script_runs_the_recipe_by_default(tmp_path):
     out = tmp_path / "sigma0"
     env = {**os.environ, **TINY, "SIGMA": "0", "OUT": str(out)}
-    env.pop("RECORD_ARGS", None), env.pop("BC_ARGS", None), env.pop("BCRL_CONFIG", None)
+    for choice in ("RECORD_ARGS", "BC_ARGS", "BCRL_CONFIG", "BCRL_EVAL_ARGS"):
+        env.pop(choice, None)  # the script's own defaults, not the caller's
     result = subprocess.run(["bash", "scripts/experiments.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
                             timeout=600)
     assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
