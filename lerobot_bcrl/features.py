@@ -22,15 +22,6 @@ AUX_IMITATE_KEY = "aux.imitate"
 # The delta between consecutive measured EEF poses (same layout as `action`). In simulation `action` is
 # what the controller was commanded; robosuite's OSC covers only part of each command, so the two differ.
 AUX_PROPRIO_ACTION_KEY = "aux.proprio_action"
-# Derived by the bcrl preprocessor (BCRLConfig.cube_yaw_features), never stored: sin and cos of 4x the yaw that
-# turns the fingers onto the nearest cube face, from observation.state's and environment_state's quaternions,
-# and with BCRLConfig.cube_yaw_signed that yaw itself over pi/4.
-CUBE_YAW_KEY = "observation.cube_yaw"
-
-
-def cube_yaw_dim(signed: bool) -> int:
-    return 3 if signed else 2
-
 
 REWARD_KEY = "next.reward"
 # robosuite's sparse Lift reward per step while the cube is above the table by 4 cm (reward_scale=None); the
@@ -44,9 +35,14 @@ STATE_NAMES = (
     + ["gripper_qpos_0", "gripper_qpos_1"]
     + [f"joint_pos_{i}" for i in range(7)]
 )
+# The cube's yaw relative to the fingers, d (rad, wrapped to the nearest face: [-pi/4, pi/4)), enters as
+# (sin 4d, cos 4d, d / (pi/4)): from the raw quaternions an MLP does not learn the demonstrators' turn to the
+# nearest face, and (sin 4d, cos 4d) alone cannot tell +45 from -45 degrees, where that turn flips sign
+# (docs/RESULTS.md, "What did not work").
 ENV_STATE_NAMES = (
     ["cube_pos_x", "cube_pos_y", "cube_pos_z", "cube_quat_x", "cube_quat_y", "cube_quat_z", "cube_quat_w"]
     + ["eef_to_cube_x", "eef_to_cube_y", "eef_to_cube_z"]
+    + ["cube_yaw_to_fingers_sin4", "cube_yaw_to_fingers_cos4", "cube_yaw_to_fingers_turn"]
 )
 STATE_DIM = len(STATE_NAMES)
 ENV_STATE_DIM = len(ENV_STATE_NAMES)
@@ -55,6 +51,7 @@ STATE_EEF_POS = slice(0, 3)
 STATE_EEF_QUAT = slice(3, 7)
 STATE_GRIPPER_QPOS = slice(7, 9)
 # Slices of observation.environment_state
+ENV_STATE_CUBE_POS = slice(0, 3)
 ENV_STATE_CUBE_QUAT = slice(3, 7)
 
 

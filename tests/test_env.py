@@ -52,6 +52,36 @@ def test_observation_layout(lowdim_env):
     assert 0.8 < cube_pos[2] < 0.85  # on the table (top at 0.8 m)
 
 
+def test_environment_state_ends_with_the_cube_yaw_relative_to_the_fingers(lowdim_env):
+    from lerobot_bcrl import geometry
+    from lerobot_bcrl.features import ENV_STATE_CUBE_QUAT, ENV_STATE_NAMES, STATE_EEF_QUAT
+
+    assert ENV_STATE_NAMES[-3:] == ["cube_yaw_to_fingers_sin4", "cube_yaw_to_fingers_cos4", "cube_yaw_to_fingers_turn"]
+    turns = []
+    for seed in range(6):  # robosuite draws the cube's yaw at every reset
+        obs, _ = lowdim_env.reset(seed=seed)
+        for _ in range(3):
+            turn = geometry.cube_yaw_error(obs["agent_pos"][STATE_EEF_QUAT], obs["environment_state"][ENV_STATE_CUBE_QUAT])
+            expected = [np.sin(4 * turn), np.cos(4 * turn), turn / (np.pi / 4)]
+            np.testing.assert_allclose(obs["environment_state"][-3:], expected, rtol=1e-4, atol=1e-4)
+            turns.append(turn)
+            obs, *_ = lowdim_env.step(np.array([0, 0, 0, 0, 0, np.sin(np.pi / 80), np.cos(np.pi / 80), -1.0]))
+    assert np.ptp(turns) > 0.3  # the feature varies with the cube, it is not a constant
+
+
+def test_signed_turn_tells_plus_from_minus_45_degrees_where_sin_cos_cannot():
+    import math
+
+    from lerobot_bcrl import geometry
+    from lerobot_bcrl.envs.lift import cube_yaw_features
+
+    fingers = np.array(geometry.IDENTITY_QUAT_XYZW)  # yaw 0
+    near_plus, near_minus = (cube_yaw_features(fingers, geometry.rotvec_to_quat([0.0, 0.0, math.radians(deg)]))
+                             for deg in (44.0, 46.0))  # 46 degrees is -44 to the nearest face
+    np.testing.assert_allclose([near_plus[2], near_minus[2]], [44 / 45, -44 / 45], rtol=1e-6)
+    assert np.linalg.norm(near_plus[:2] - near_minus[:2]) < 0.15  # (sin 4d, cos 4d): nearly alike
+
+
 def test_seeding_reproduces_episodes(lowdim_env):
     def run(seed):
         obs, _ = lowdim_env.reset(seed=seed)

@@ -89,20 +89,6 @@ def test_lerobot_eval_rolls_out_a_lowdim_checkpoint(lowdim_run, tmp_path):
 
 
 @pytest.mark.slow
-def test_lerobot_train_and_eval_with_cube_yaw_features(lowdim_dataset_root, tmp_path):
-    """The derived yaw input reaches the model under the unmodified commands: saved with the preprocessor,
-    rebuilt by lerobot-eval from the checkpoint alone."""
-    train = train_args(lowdim_dataset_root, tmp_path / "train", steps=2)
-    run_cli("lerobot-train", *train, "--policy.cube_yaw_features=true", "--policy.quat_weight=1000")
-    checkpoint = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"
-    config = json.loads((checkpoint / "config.json").read_text())
-    assert config["cube_yaw_features"] is True and config["quat_weight"] == 1000
-    assert "bcrl_cube_yaw_features" in (checkpoint / "policy_preprocessor.json").read_text()
-    run_cli("lerobot-eval", *eval_args(checkpoint, tmp_path / "eval", "--env.obs_type=agent_pos"))
-    assert json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
-
-
-@pytest.mark.slow
 def test_lerobot_train_and_eval_with_images(image_dataset_root, tmp_path):
     run_cli("lerobot-train", *train_args(image_dataset_root, tmp_path / "train", steps=2))
     checkpoint = tmp_path / "train" / "checkpoints" / "last" / "pretrained_model"

@@ -1,4 +1,5 @@
-"""The `bcrl` policy on tiny recorded datasets: action format, PPO interface, save/load, overfitting."""
+"""The `bcrl` policy on tiny recorded datasets: action format, PPO's view of it (rl/agent.py), save/load,
+overfitting, and a dataset of another layout."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from policy_fixtures import (  # noqa: F401  (fixtures)
 
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy
+from lerobot_bcrl.rl.agent import BCRLAgent
 
 
 def assert_valid_actions(actions: torch.Tensor):
@@ -34,22 +36,31 @@ def test_select_action_is_a_valid_deterministic_action(fixture_name, request):
     assert actions.shape == (len(dataset), 8)
     assert_valid_actions(actions)
     assert torch.equal(actions, postprocessor(policy.select_action(batch)))
-    torch.manual_seed(0)
-    sampled = postprocessor(policy.select_action(batch, sample=True))
-    assert_valid_actions(sampled)
-    assert not torch.allclose(sampled[:, :3], actions[:, :3])
 
 
-def test_ppo_interface_log_prob_matches_between_sample_and_evaluate(lowdim_dataset_root):
+def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(lowdim_dataset_root):
     dataset = load_dataset(lowdim_dataset_root)
     policy, preprocessor, _ = make_bcrl_policy(dataset)
+    policy.log_std.data.fill_(0.0)  # wide enough that some samples leave the clamp and the qw >= 0 cover
+    agent = BCRLAgent(policy, preprocessor)
     batch = preprocessor(whole_dataset_batch(dataset))
-    actions, log_prob, value = policy.sample_actions(batch)
-    assert_valid_actions(actions)
-    new_log_prob, entropy, new_value = policy.evaluate_actions(batch, actions)
+    torch.manual_seed(0)
+    with torch.no_grad():  # as the rollout workers sample
+        raw_actions, log_prob, value = agent.sample(batch)
+    env_actions = agent.to_env_action(raw_actions)
+    assert_valid_actions(env_actions)
+    assert not torch.allclose(env_actions[:, :7], raw_actions[:, :7])  # the projection did something
+    new_log_prob, entropy, new_value = agent.evaluate(batch, raw_actions)
     assert log_prob.shape == entropy.shape == value.shape == (len(dataset),)
-    assert torch.allclose(log_prob, new_log_prob)
-    assert torch.allclose(value, new_value)
+    torch.testing.assert_close(new_log_prob, log_prob, rtol=1e-5, atol=1e-5 * float(log_prob.abs().max()))
+    torch.testing.assert_close(new_value, value, rtol=1e-5, atol=1e-5 * float(value.abs().max()))
+    # the log-prob is the Gaussian's at the raw sample: recomputed by hand from the mean and the std
+    outputs = policy.model(batch)
+    continuous, gripper = policy.action_distributions(outputs)
+    mean, std = continuous.loc, policy.log_std.exp()
+    by_hand = (-0.5 * ((raw_actions[:, :7] - mean) / std) ** 2 - std.log() - 0.5 * torch.log(torch.tensor(2 * torch.pi))).sum(-1)
+    by_hand = by_hand + gripper.logits.log_softmax(-1).gather(1, raw_actions[:, 7:].long()).squeeze(1)
+    torch.testing.assert_close(new_log_prob, by_hand, rtol=1e-4, atol=1e-4 * float(by_hand.abs().max()))
     # gradients reach the learned log-std and the value head
     (-(new_log_prob.mean()) - entropy.mean() + new_value.pow(2).mean()).backward()
     assert policy.log_std.grad is not None and policy.model.value_head.weight.grad is not None
@@ -60,8 +71,9 @@ def test_separate_critic_keeps_the_value_loss_off_the_actor(fixture_name, reques
     dataset = load_dataset(request.getfixturevalue(fixture_name))
     policy, preprocessor, _ = make_bcrl_policy(dataset, critic_hidden_dims=(32, 32))
     assert policy.model.value_head is None
+    agent = BCRLAgent(policy, preprocessor)
     batch = preprocessor(whole_dataset_batch(dataset))
-    _, _, value = policy.evaluate_actions(batch, policy.sample_actions(batch)[0])
+    _, _, value = agent.evaluate(batch, agent.sample(batch)[0])
     assert value.shape == (len(dataset),)
     value.pow(2).mean().backward()
     grads = {name: p.grad for name, p in policy.named_parameters()}
@@ -79,7 +91,7 @@ def test_bc_checkpoint_loads_with_a_fresh_separate_critic(lowdim_dataset_root, t
     dataset = load_dataset(lowdim_dataset_root)
     policy, preprocessor, _ = make_bcrl_policy(dataset)
     policy.save_pretrained(tmp_path)
-    # what `bcrl-finetune --policy.path=<BC> --policy.critic_hidden_dims=[64]` does
+    # what `bcrl-finetune --policy.path=<BC> --policy.critic_hidden_dims=[64]` does (strict=False: a fresh critic)
     cfg = PreTrainedConfig.from_pretrained(tmp_path, cli_overrides=["--critic_hidden_dims=[64]"])
     cfg.pretrained_path, cfg.device = tmp_path, "cpu"
     assert cfg.critic_hidden_dims == (64,)
@@ -140,49 +152,20 @@ def test_overfits_a_tiny_lowdim_dataset(lowdim_dataset_root):
     assert metrics["gripper_accuracy"] == 1.0
 
 
-@pytest.mark.parametrize("signed", [False, True])
-def test_cube_yaw_features_are_the_turn_to_the_nearest_face_and_survive_save_load(lowdim_dataset_root, tmp_path, signed):
-    import numpy as np
-    from lerobot.policies.factory import make_pre_post_processors
+def test_a_dataset_of_another_layout_trains_and_acts_without_anything_of_lift():
+    """The policy reads features by name and shape: other state widths, no aux.* targets."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
 
-    from lerobot_bcrl import geometry
-    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_CUBE_QUAT, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
-
-    dataset = load_dataset(lowdim_dataset_root)
-    policy, preprocessor, postprocessor = make_bcrl_policy(dataset, cube_yaw_features=True, cube_yaw_signed=signed)
-    raw = whole_dataset_batch(dataset)
-    batch = preprocessor(dict(raw))
-    expected = np.array([geometry.cube_yaw_error(s[STATE_EEF_QUAT].numpy(), e[ENV_STATE_CUBE_QUAT].numpy())
-                         for s, e in zip(raw[STATE_KEY], raw[ENV_STATE_KEY])])
-    columns = [np.sin(4 * expected), np.cos(4 * expected)] + ([expected / (np.pi / 4)] if signed else [])
-    np.testing.assert_allclose(batch[CUBE_YAW_KEY].numpy(), np.stack(columns, -1), atol=1e-4)
-    assert not torch.allclose(batch[ENV_STATE_KEY], raw[ENV_STATE_KEY])  # the normalizer still ran after it
-    loss, _ = policy.forward(dict(batch))
-    assert torch.isfinite(loss)
-    for part in (policy, preprocessor, postprocessor):
-        part.save_pretrained(tmp_path)
-    loaded = BCRLPolicy.from_pretrained(tmp_path)
-    assert loaded.config.cube_yaw_features and loaded.config.cube_yaw_signed == signed
-    loaded_pre, _ = make_pre_post_processors(loaded.config, pretrained_path=str(tmp_path))
-    assert torch.equal(policy.select_action(preprocessor(dict(raw))), loaded.select_action(loaded_pre(dict(raw))))
-    with pytest.raises(KeyError):  # without the step the policy must not silently run on missing features
-        policy.select_action(make_bcrl_policy(dataset)[1](dict(raw)))
-
-
-def test_signed_cube_yaw_flips_at_45_degrees_where_sin_cos_cannot_tell():
-    import math
-
-    from lerobot_bcrl import geometry
-    from lerobot_bcrl.features import CUBE_YAW_KEY, ENV_STATE_CUBE_QUAT, ENV_STATE_KEY, STATE_EEF_QUAT, STATE_KEY
-    from lerobot_bcrl.policies.bcrl.processor_bcrl import CubeYawFeaturesStep
-
-    state, env_state = torch.zeros(2, 16), torch.zeros(2, 10)
-    state[:, STATE_EEF_QUAT] = torch.tensor(geometry.IDENTITY_QUAT_XYZW, dtype=torch.float32)  # eef yaw 0
-    for row, cube_yaw_deg in enumerate((44.0, 46.0)):  # -44 degrees to the nearest face for the second
-        cube = geometry.rotvec_to_quat([0.0, 0.0, math.radians(cube_yaw_deg)])
-        env_state[row, ENV_STATE_CUBE_QUAT] = torch.tensor(cube, dtype=torch.float32)
-    features = CubeYawFeaturesStep(signed=True).observation({STATE_KEY: state, ENV_STATE_KEY: env_state})[CUBE_YAW_KEY]
-    torch.testing.assert_close(features[:, 2], torch.tensor([44 / 45, -44 / 45]), atol=1e-5, rtol=0)
-    assert (features[0, :2] - features[1, :2]).norm() < 0.15  # (sin 4d, cos 4d) of 44 and -44 degrees: nearly alike
-    with pytest.raises(ValueError, match="cube_yaw_features=true"):
-        BCRLConfig(cube_yaw_signed=True)
+    config = BCRLConfig(device="cpu", observation_mode="low_dim", aux_weight=0.0, require_aux_targets=False,
+                        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (5,)),
+                                        "observation.environment_state": PolicyFeature(FeatureType.ENV, (4,))},
+                        output_features={"action": PolicyFeature(FeatureType.ACTION, (8,))})
+    policy = BCRLPolicy(config)
+    torch.manual_seed(0)
+    batch = {"observation.state": torch.randn(6, 5), "observation.environment_state": torch.randn(6, 4),
+             "action": torch.cat([torch.randn(6, 3) * 0.01, torch.tensor([[0.0, 0.0, 0.0, 1.0]] * 6),
+                                  torch.tensor([[1.0], [-1.0]] * 3)], dim=-1)}
+    loss, metrics = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and "bc_aux_eef_mse" not in metrics
+    assert_valid_actions(policy.select_action(batch))

@@ -22,6 +22,13 @@ TASK_DESCRIPTION = "Lift the red cube off the table."
 OBS_TYPES = ("pixels_agent_pos", "agent_pos")
 
 
+def cube_yaw_features(eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> np.ndarray:
+    """(sin 4d, cos 4d, d / (pi/4)), d the yaw that turns the fingers onto the nearest cube face
+    (features.ENV_STATE_NAMES says why these three)."""
+    turn = geometry.cube_yaw_error(eef_quat_xyzw, cube_quat_xyzw)
+    return np.array([np.sin(4 * turn), np.cos(4 * turn), turn / (np.pi / 4)])
+
+
 class LiftEnv(gym.Env):
     """Sawyer Lift, horizon 200 at 20 Hz, sparse reward (2.25 per lifted step) unless `dense_reward`."""
 
@@ -212,7 +219,12 @@ class LiftEnv(gym.Env):
             ]
         ).astype(np.float32)
         environment_state = np.concatenate(
-            [sim_obs["cube_pos"], sim_obs["cube_quat"], sim_obs["cube_pos"] - sim_obs["robot0_eef_pos"]]
+            [
+                sim_obs["cube_pos"],
+                sim_obs["cube_quat"],
+                sim_obs["cube_pos"] - sim_obs["robot0_eef_pos"],
+                cube_yaw_features(sim_obs["robot0_eef_quat_site"], sim_obs["cube_quat"]),
+            ]
         ).astype(np.float32)
         obs: dict[str, Any] = {"agent_pos": agent_pos, "environment_state": environment_state}
         if self._camera is not None:

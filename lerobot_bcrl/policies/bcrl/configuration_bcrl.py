@@ -1,4 +1,4 @@
-"""The `bcrl` policy configuration: network sizes, BC loss weights and the PPO action distribution.
+"""The `bcrl` policy configuration: network sizes and BC loss weights.
 
 Registered with LeRobot as `--policy.type=bcrl`; serialized as `config.json` beside the weights.
 """
@@ -11,7 +11,7 @@ from lerobot.configs import NormalizationMode
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
-from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY, cube_yaw_dim
+from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY
 from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M
 
 OBSERVATION_MODES = ("auto", "pixels", "low_dim")
@@ -36,22 +36,10 @@ class BCRLConfig(PreTrainedConfig):
     # a freshly initialised one (`bcrl-finetune --policy.path=... --ppo.critic_hidden_dims=[256,256]`).
     critic_hidden_dims: tuple[int, ...] = ()
     aux_hidden_dim: int = 64  # hidden width of the EEF- and grasp-position heads off the keypoints
-    # low_dim only: also feed the cube's yaw relative to the fingers as (sin 4d, cos 4d), computed by the
-    # preprocessor from the two quaternions (a cube looks the same every 90 degrees). From raw quaternions an MLP
-    # does not learn the demonstrators' turn to the nearest face (docs/RESULTS.md, fifteenth session).
-    cube_yaw_features: bool = False
-    # With cube_yaw_features, also the signed turn d / (pi/4) in [-1, 1). (sin 4d, cos 4d) is the same at d = +45
-    # and -45 degrees, where the demonstrators' turn flips sign (they turn to the nearest face): from it an MLP
-    # blends the two turns near the flip and turns slowly there (docs/RESULTS.md, twentieth session).
-    cube_yaw_signed: bool = False
     # The delta-position head predicts delta_pos / delta_pos_scale_m, so that its targets are O(1)
     # although the action itself is left unnormalized (ACTION uses IDENTITY, see normalization_mapping).
     delta_pos_scale_m: float = MAX_DELTA_POS_M
     max_delta_pos_m: float = MAX_DELTA_POS_M  # select_action clamps |delta_pos| to this (paper's range)
-
-    # -- PPO action distribution ------------------------------------------------------------------------
-    init_log_std: float = -1.0  # learned log-std of the Gaussian over [delta_pos/scale, quat] (7-D)
-    sample_in_select_action: bool = False  # select_action samples instead of taking the mean / argmax
 
     # -- BC loss weights (method.md section 3) ----------------------------------------------------------
     l1_weight: float = 1.0  # L1 on delta_pos / delta_pos_scale_m
@@ -64,7 +52,7 @@ class BCRLConfig(PreTrainedConfig):
     # Gripper class weights come from the dataset's closed fraction; clip it so that a dataset that
     # (almost) never closes the gripper cannot produce an infinite weight.
     min_class_fraction: float = 0.01
-    # lerobot-train always gives aux.* (processor_bcrl keeps them); a batch without them fails loudly
+    # lerobot-train always gives aux.* (aux_targets.py keeps them); a batch without them fails loudly
     # unless this is False, so that a broken pipeline never silently trains without the aux heads.
     require_aux_targets: bool = True
 
@@ -92,13 +80,6 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {self.observation_mode!r}")
         if self.delta_pos_scale_m <= 0:
             raise ValueError(f"delta_pos_scale_m must be > 0, got {self.delta_pos_scale_m}")
-        if self.cube_yaw_signed and not self.cube_yaw_features:
-            raise ValueError("bcrl: cube_yaw_signed adds to cube_yaw_features: set cube_yaw_features=true as well")
-
-    @property
-    def cube_yaw_dim(self) -> int:
-        """Width of `observation.cube_yaw`: 0 without cube_yaw_features, 2 (sin 4d, cos 4d), 3 with the signed d."""
-        return cube_yaw_dim(self.cube_yaw_signed) if self.cube_yaw_features else 0
 
     @property
     def uses_images(self) -> bool:
@@ -141,8 +122,6 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"bcrl in pixels mode reads exactly one camera, got {list(self.image_features)}")
         if not self.uses_images and ENV_STATE_KEY not in self.input_features:
             raise ValueError(f"bcrl in low_dim mode needs '{ENV_STATE_KEY}' among the input features")
-        if self.cube_yaw_features and self.uses_images:
-            raise ValueError("bcrl: cube_yaw_features reads the cube pose in observation.environment_state (low_dim mode)")
         action = self.action_feature
         if action is not None and tuple(action.shape) != (ACTION_DIM,):
             raise ValueError(f"bcrl predicts the {ACTION_DIM}-D delta action, got action shape {action.shape}")

@@ -21,7 +21,6 @@ from lerobot_bcrl.features import (
     AUX_GRASP_POS_KEY,
     AUX_GRASP_VALID_KEY,
     AUX_IMITATE_KEY,
-    CUBE_YAW_KEY,
     ENV_STATE_KEY,
     STATE_KEY,
 )
@@ -109,7 +108,7 @@ class BCRLModel(nn.Module):
             keypoint_dim = 2 * config.num_keypoints
         else:
             self.keypoint_encoder = None
-            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0] + config.cube_yaw_dim
+            keypoint_dim = config.input_features[ENV_STATE_KEY].shape[0]
         self.trunk = mlp(keypoint_dim + state_dim, config.trunk_hidden_dims)
         trunk_dim = config.trunk_hidden_dims[-1] if config.trunk_hidden_dims else keypoint_dim + state_dim
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
@@ -129,8 +128,6 @@ class BCRLModel(nn.Module):
     def keypoints(self, batch: dict[str, Tensor]) -> Tensor:
         if self.keypoint_encoder is not None:
             return self.keypoint_encoder(batch[self.config.image_key])
-        if self.config.cube_yaw_features:
-            return torch.cat([batch[ENV_STATE_KEY], batch[CUBE_YAW_KEY]], dim=-1)
         return batch[ENV_STATE_KEY]
 
     def forward(self, batch: dict[str, Tensor]) -> BCRLOutputs:
@@ -166,7 +163,9 @@ class BCRLPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         self.model = BCRLModel(config)
-        self.log_std = nn.Parameter(torch.full((CONTINUOUS_DIM,), config.init_log_std))
+        # Log-std of PPO's Gaussian over [delta_pos / scale, quat]; BC never trains it, bcrl-finetune sets it
+        # (PPOConfig.reset_log_std*) before the first update.
+        self.log_std = nn.Parameter(torch.zeros(CONTINUOUS_DIM))
         # Buffers, saved in model.safetensors: a checkpoint keeps the statistics of the data it was trained on.
         self.register_buffer("gripper_class_weights", self._gripper_class_weights(dataset_stats))
         aux_mean = _stat(dataset_stats, AUX_EEF_POS_KEY, "mean")
@@ -199,53 +198,20 @@ class BCRLPolicy(PreTrainedPolicy):
         return self.select_action(batch, **kwargs)[:, None]
 
     @torch.no_grad()
-    def select_action(self, batch: dict[str, Tensor], sample: bool | None = None, **kwargs) -> Tensor:
-        """The 8-D action (B, 8): mean and argmax by default, sampled when `sample` (or the config) says so."""
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """The 8-D action (B, 8) of the mean: delta position and rotation as predicted, the likelier gripper class."""
         self.eval()
         outputs = self.model(batch)
-        if sample if sample is not None else self.config.sample_in_select_action:
-            continuous, gripper_class = self._sample(outputs)
-        else:
-            continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_quat_xyzw], dim=-1)
-            gripper_class = outputs.gripper_logits.argmax(dim=-1)
-        actions = self.to_env_action(continuous, gripper_class)
+        continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_quat_xyzw], dim=-1)
+        actions = self.to_env_action(continuous, outputs.gripper_logits.argmax(dim=-1))
         rerun_log.log_policy_step(actions, outputs.value)  # no-op unless our envs log rollouts to rerun
         return actions
 
-    # -- PPO interface ----------------------------------------------------------------------------------
-    def sample_actions(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-        """(actions (B, 8), log_prob (B,), value (B,)); log_prob is that of the returned env action."""
-        outputs = self.model(batch)
-        with torch.no_grad():
-            actions = self.to_env_action(*self._sample(outputs))
-        log_prob, _ = self._log_prob_and_entropy(outputs, actions)
-        return actions, log_prob, outputs.value
-
-    def evaluate_actions(self, batch: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(log_prob (B,), entropy (B,), value (B,)) of 8-D env actions under the current policy."""
-        outputs = self.model(batch)
-        log_prob, entropy = self._log_prob_and_entropy(outputs, actions)
-        return log_prob, entropy, outputs.value
-
+    # -- PPO's action distribution (rl/agent.py samples and scores it) -----------------------------------
     def action_distributions(self, outputs: BCRLOutputs) -> tuple[Normal, Categorical]:
         """Gaussian over [delta_pos / scale, unit quat] with the learned log-std, categorical over the gripper."""
         mean = torch.cat([outputs.delta_pos_scaled, self._canonical(outputs.delta_quat_xyzw)], dim=-1)
         return Normal(mean, self.log_std.exp().expand_as(mean)), Categorical(logits=outputs.gripper_logits)
-
-    def _sample(self, outputs: BCRLOutputs) -> tuple[Tensor, Tensor]:
-        continuous, gripper = self.action_distributions(outputs)
-        return continuous.sample(), gripper.sample()
-
-    def _log_prob_and_entropy(self, outputs: BCRLOutputs, actions: Tensor) -> tuple[Tensor, Tensor]:
-        # The sample is projected (unit quaternion on the qw >= 0 cover, clamped delta_pos) before it is
-        # executed; log-probs are taken at the projected point, the same point a PPO update re-evaluates,
-        # so the probability ratio starts at exactly 1.
-        continuous_dist, gripper_dist = self.action_distributions(outputs)
-        continuous = torch.cat([actions[:, :3] / self.config.delta_pos_scale_m, actions[:, 3:7]], dim=-1)
-        gripper_class = (actions[:, 7] > 0).long()
-        log_prob = continuous_dist.log_prob(continuous).sum(-1) + gripper_dist.log_prob(gripper_class)
-        entropy = continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
-        return log_prob, entropy
 
     # -- actions ----------------------------------------------------------------------------------------
     @staticmethod
@@ -311,7 +277,7 @@ class BCRLPolicy(PreTrainedPolicy):
         if missing:
             raise KeyError(
                 f"bcrl: the batch lacks the auxiliary targets {missing}. They come from the dataset and must"
-                " survive the preprocessor (import lerobot_bcrl so processor_bcrl keeps them), or set"
+                " survive the preprocessor (import lerobot_bcrl: policies/bcrl/aux_targets.py keeps them), or set"
                 " --policy.aux_weight=0 / --policy.require_aux_targets=false."
             )
         eef_target = (batch[AUX_EEF_POS_KEY] - self.aux_pos_mean) / self.aux_pos_std
