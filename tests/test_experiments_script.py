@@ -1,6 +1,6 @@
-"""scripts/experiments.sh (`make experiments`) at a tiny size: its low-dim defaults are the recipe docs/RESULTS.md
-measured last (retry demonstrations, BC with the signed cube-yaw feature, BC+RL from the best-validation config),
-and its steps chain into a report."""
+"""scripts/experiments.sh (`make experiments`) at a tiny size: in low-dim mode it runs the recipe of docs/RESULTS.md
+(retry demonstrations, BC from configs/bc_lift_lowdim.json, BC+RL from the best-validation config), and its steps
+chain into a report."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_bcrl.rl.ppo import FINETUNE_CONFIG_NAME
+from lerobot_bcrl.rl.checkpoint import FINETUNE_CONFIG_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,7 +28,7 @@ TINY = {
 def test_experiments_script_runs_the_recipe_by_default(tmp_path):
     out = tmp_path / "sigma0"
     env = {**os.environ, **TINY, "SIGMA": "0", "OUT": str(out)}
-    for choice in ("RECORD_ARGS", "BC_ARGS", "BCRL_CONFIG", "BCRL_EVAL_ARGS"):
+    for choice in ("BC_ARGS", "BCRL_CONFIG"):
         env.pop(choice, None)  # the script's own defaults, not the caller's
     result = subprocess.run(["bash", "scripts/experiments.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
                             timeout=600)
@@ -40,11 +40,12 @@ def test_experiments_script_runs_the_recipe_by_default(tmp_path):
     assert recorded["miss_height_range_m"] == [0.015, 0.045] and recorded["miss_max_aside_m"] == 0.035
 
     bc = json.loads((out / "bc" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
-    assert bc["cube_yaw_features"] is True and bc["cube_yaw_signed"] is True and bc["quat_weight"] == 1000.0
+    assert bc["quat_weight"] == 1000.0 and bc["critic_hidden_dims"] == [256, 256]
+    assert bc["input_features"]["observation.environment_state"]["shape"] == [13]  # with the cube-yaw features
 
     bcrl = json.loads((out / "bcrl" / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG_NAME).read_text())
     assert bcrl["select"] == "best_validation" and bcrl["schedule"]["theta_min"] == 0.2
-    assert bcrl["ppo"]["reset_log_std"] == -2.0 and bcrl["ppo"]["critic_hidden_dims"] == [256, 256]
+    assert bcrl["ppo"]["reset_log_std"] == -2.0 and bcrl["ppo"]["term_weighting"] == "gradient_share"
     final = json.loads((out / "bcrl" / "eval_final.json").read_text())
     assert final["env_steps"] == 128 and final["selected_env_steps"] in (0, 64, 128)
     assert json.loads((out / "bc_only" / "eval_final.json").read_text())["method"] == "BC"

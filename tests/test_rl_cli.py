@@ -43,9 +43,8 @@ def finetune_args(dataset_root: Path, output_dir: Path, total_env_steps: int, *e
 def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, tmp_path):
     schedule = ["--schedule.type=three_phase", "--schedule.alpha=4", "--schedule.beta=10", "--schedule.phi=40"]
     args = finetune_args(lowdim_dataset_root, tmp_path / "run", 512, "--policy.type=bcrl",
-                         "--policy.push_to_hub=false", "--ppo.obs_normalization=running", "--ppo.anneal_lr=true",
-                         "--ppo.learning_rate=1e-4", "--ppo.reset_log_std=-1.0", "--ppo.anneal_log_std_to=-3.0",
-                         *schedule)
+                         "--policy.push_to_hub=false", "--ppo.learning_rate=1e-4", "--ppo.reset_log_std=-1.0",
+                         "--ppo.reset_log_std_rotation=-3.0", *schedule)
     process = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, env=os.environ.copy())
     last = tmp_path / "run" / "checkpoints" / "last"
@@ -57,7 +56,10 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     killed_at = json.loads((last / "training_state" / "training_step.json").read_text())
     assert killed_at["env_steps"] < 512
 
-    output = run_cli("bcrl-finetune", *args, "--resume=true", "--final_eval_sampled=true")
+    killed_log_std = load_file(last / "pretrained_model" / "model.safetensors")["log_std"]
+    assert not np.allclose(killed_log_std.numpy(), [-1.0] * 3 + [-3.0] * 4)  # learned from its reset value
+
+    output = run_cli("bcrl-finetune", *args, "--resume=true")
     final = json.loads((last / "training_state" / "training_step.json").read_text())
     # 128 env steps per iteration, 4 epochs x 2 minibatches: 8 optimisation steps each, whatever the kill.
     assert final["env_steps"] == 512 and final["optim_step"] == 32 and final["ppo_iteration"] == 4
@@ -67,34 +69,9 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     assert [int(r["env_steps"]) for r in rows] == [128, 256, 384, 512]  # no duplicate rows from the killed run
     first_resumed = rows[killed_at["env_steps"] // 128]
     assert int(first_resumed["optim_step"]) == killed_at["optim_step"] + 8  # the counters went on, not restarted
-    # the annealed learning rate follows the env step count across the kill: 1e-4 * (1 - steps before / 512)
-    np.testing.assert_allclose([float(r["learning_rate"]) for r in rows], [1e-4, 7.5e-5, 5e-5, 2.5e-5])
-    # so does the annealed position log-std, -1 -> -3 over the budget; the log-std is set, not learned (the
-    # rotation's keeps its reset value through the updates)
-    np.testing.assert_allclose([float(r["position_log_std"]) for r in rows], [-1.0, -1.5, -2.0, -2.5], atol=1e-6)
-    log_std = load_file(last / "pretrained_model" / "model.safetensors")["log_std"]
-    np.testing.assert_allclose(log_std.numpy(), [-2.5] * 3 + [-5.0] * 4, atol=1e-6)
     assert "512 env steps" in output
-    result = json.loads((tmp_path / "run" / "eval_final.json").read_text())  # both final evaluations, same seeds
-    assert result["eval_episodes"] == result["eval_sampled_episodes"] == 1 and "with sampled actions" in output
-    assert [e["seed"] for e in result["episodes_sampled"]] == [e["seed"] for e in result["episodes"]]
-
-    # Running observation stats: the dataset's 100 frames as prior plus all 512 rollout observations, across
-    # the kill (the resumed run restored the count), and the saved preprocessor normalises with them.
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.configs.policies import PreTrainedConfig
-
-    from lerobot_bcrl.rl.normalization import find_normalizer
-
-    obs_stats = final["obs_stats"]["observation.state"]
-    assert obs_stats["count"] == pytest.approx(100 + 512)
-    pretrained = last / "pretrained_model"
-    preprocessor, _ = make_pre_post_processors(PreTrainedConfig.from_pretrained(pretrained), pretrained_path=str(pretrained))
-    saved = find_normalizer(preprocessor).state_dict()
-    np.testing.assert_allclose(saved["observation.state.mean"].numpy(), obs_stats["mean"], rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(saved["observation.state.std"].numpy(), np.sqrt(obs_stats["var"]), rtol=1e-5, atol=1e-6)
-    dataset_mean = json.loads((lowdim_dataset_root / "meta" / "stats.json").read_text())["observation.state"]["mean"]
-    assert not np.allclose(obs_stats["mean"], dataset_mean)  # the rollouts moved them
+    result = json.loads((tmp_path / "run" / "eval_final.json").read_text())
+    assert result["eval_episodes"] == 1 and [e["seed"] for e in result["episodes"]] == [1_000_000]
 
 
 @pytest.mark.slow
@@ -105,7 +82,7 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}",
                      *finetune_args(lowdim_dataset_root, tmp_path / "bcrl", 256), "--eval_rerun=true",
-                     "--ppo.critic_hidden_dims=[32]")  # a fresh separate critic on the BC checkpoint
+                     "--policy.critic_hidden_dims=[32]")  # a fresh separate critic on the BC checkpoint
     assert "bcrl-finetune (BC+RL)" in output
     # the evaluation episode in rerun: what happened, the policy's predictions and values, and theta_t
     from lerobot_bcrl.rerun_log import read_entity_rows
@@ -141,7 +118,8 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
 
 @pytest.mark.slow
 def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_seeds(lowdim_dataset_root, tmp_path):
-    from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET, checkpoint_name
+    from lerobot_bcrl.rl.checkpoint import checkpoint_name
+    from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET
 
     run = tmp_path / "run"
     # the dense reward, so that evaluations differ in return and the choice is not a tie of zeros
@@ -181,7 +159,8 @@ def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_s
 
 def test_best_validation_selection_needs_periodic_evaluations(tmp_path):
     from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
-    from lerobot_bcrl.rl.ppo import FinetuneConfig, finetune
+    from lerobot_bcrl.rl.configuration import FinetuneConfig
+    from lerobot_bcrl.rl.ppo import finetune
 
     cfg = FinetuneConfig(policy=BCRLConfig(), select="best_validation", eval_freq=0, total_env_steps=128,
                          output_dir=tmp_path / "run")

@@ -51,7 +51,8 @@ def test_learner_scores_the_worker_observations_as_the_worker_did(fixture_name, 
         log_prob, _, value = learner.evaluate(minibatch["obs"], minibatch["actions"])
     # float32 sums in other batch shapes differ by ~1e-4; a ratio off by 1e-3 is nothing next to the 0.2 clip
     torch.testing.assert_close(log_prob, minibatch["log_probs"], atol=1e-3, rtol=0)
-    torch.testing.assert_close(value, minibatch["values"], atol=1e-4, rtol=1e-5)
+    value_scale = max(1.0, float(minibatch["values"].abs().max()))
+    torch.testing.assert_close(value, minibatch["values"], atol=1e-4 * value_scale, rtol=1e-4)
     # and the check can fail: the neighbouring step's observations under the same actions score differently
     shifted = {key: np.roll(value, 1, axis=0)[:12] for key, value in batch["obs"].items()}
     with torch.no_grad():
@@ -74,7 +75,7 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     assert "observation.images.agentview" in json.loads((bc_checkpoint / "config.json").read_text())["input_features"]
     args = [arg for arg in finetune_args(data, tmp_path / "bcrl", 128) if not arg.startswith("--rollout.n_workers")]
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}", *args, "--env.obs_type=pixels_agent_pos",
-                     "--rollout.n_workers=1", "--ppo.critic_hidden_dims=[32]", timeout=300)
+                     "--rollout.n_workers=1", "--policy.critic_hidden_dims=[32]", timeout=300)
     assert "128 env steps" in output
     result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
     assert result["env_steps"] == 128 and result["eval_episodes"] == 1 and 0 < result["theta"] < 1

@@ -199,15 +199,14 @@ def test_workers_die_with_a_killed_learner_instead_of_finishing_their_rollout():
                 os.kill(pid, signal.SIGKILL)
 
 
-def test_sampled_evaluation_is_reproducible_and_leaves_the_training_rng_alone():
-    """`evaluate(sample=True)` draws actions as training does, the same ones for the same episode seeds, and
-    collecting after it gives the trajectories collecting would have given without it."""
+def test_evaluation_is_reproducible_and_leaves_the_training_rollouts_alone():
+    """An evaluation plays the same episodes from the same seeds whatever the workers' own seed, and collecting
+    after it gives the trajectories collecting would have given without it."""
     state = MLPAgent().module.state_dict()
     seeds = [20, 21, 22]
     workers = make_workers(seed=5)
-    sampled = [e.episode_return for e in workers.evaluate(state, seeds, sample=True)]
-    after_sampled_eval = workers.collect(state, 30)
-    assert sampled == [e.episode_return for e in make_workers(seed=9).evaluate(state, seeds, sample=True)]
-    deterministic = [e.episode_return for e in make_workers(seed=5).evaluate(state, seeds)]
-    assert sampled != deterministic  # log-std 0: sampled actions are far from the mean
-    np.testing.assert_array_equal(after_sampled_eval.actions, make_workers(seed=5).collect(state, 30).actions)
+    evaluated = [e.episode_return for e in workers.evaluate(state, seeds)]
+    after_eval = workers.collect(state, 30)
+    assert evaluated == [e.episode_return for e in make_workers(seed=9).evaluate(state, seeds)]
+    assert [e.seed for e in workers.evaluate(state, seeds)] == seeds
+    np.testing.assert_array_equal(after_eval.actions, make_workers(seed=5).collect(state, 30).actions)

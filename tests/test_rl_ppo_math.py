@@ -9,8 +9,8 @@ import pytest
 import torch
 from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, whole_dataset_batch  # noqa: F401
 
-from lerobot_bcrl.rl.ppo import (PPOConfig, RewardScaler, bcrl_loss, compute_gae, learning_rate_at, position_log_std_at,
-                                 ppo_loss_terms)
+from lerobot_bcrl.rl.normalization import RewardScaler
+from lerobot_bcrl.rl.ppo import PPOConfig, bcrl_loss, compute_gae, ppo_loss_terms
 
 
 def test_gae_matches_a_hand_computed_trajectory():
@@ -68,23 +68,10 @@ def test_reward_scaler_divides_by_return_std():
     assert scaled[-1, 0] == pytest.approx(rewards[-1, 0] / math.sqrt(var + 1e-8))
 
 
-def test_annealed_learning_rate_falls_linearly_to_zero_at_the_budget():
-    annealed = PPOConfig(learning_rate=3e-5, anneal_lr=True)
-    assert learning_rate_at(annealed, 0, 1000) == pytest.approx(3e-5)
-    assert learning_rate_at(annealed, 250, 1000) == pytest.approx(2.25e-5)
-    assert learning_rate_at(annealed, 1000, 1000) == 0.0 and learning_rate_at(annealed, 1200, 1000) == 0.0
-    constant = PPOConfig(learning_rate=3e-5)
-    assert learning_rate_at(constant, 0, 1000) == learning_rate_at(constant, 999, 1000) == 3e-5
-
-
-def test_annealed_position_log_std_moves_linearly_from_its_start_step_to_the_budget():
-    annealed = PPOConfig(reset_log_std=-1.5, anneal_log_std_to=-3.0, anneal_log_std_from=400)
-    assert position_log_std_at(annealed, 0, 1000) == position_log_std_at(annealed, 400, 1000) == -1.5
-    assert position_log_std_at(annealed, 700, 1000) == pytest.approx(-2.25)
-    assert position_log_std_at(annealed, 1000, 1000) == position_log_std_at(annealed, 1500, 1000) == -3.0
-    assert position_log_std_at(PPOConfig(reset_log_std=-1.5), 700, 1000) is None  # learned, not annealed
-    with pytest.raises(ValueError, match="anneal_log_std_to needs ppo.reset_log_std"):
-        PPOConfig(reset_log_std=None, anneal_log_std_to=-3.0)
+def assert_close_to_scale(actual: torch.Tensor, expected: torch.Tensor, rtol: float, msg: str = "") -> None:
+    """Equal within `rtol` of the larger of the two tensors' magnitudes (gradients summed in different orders)."""
+    scale = max(float(expected.abs().max()), float(actual.abs().max()), 1e-12)
+    torch.testing.assert_close(actual, expected, rtol=rtol, atol=rtol * scale, msg=msg)
 
 
 def _grads(module) -> dict[str, torch.Tensor]:
@@ -116,21 +103,15 @@ def test_theta_one_reproduces_pure_bc_gradients(lowdim_dataset_root):
     policy.forward(demo_batch)[0].backward()
     bc_grads = _grads(policy)
 
+    # The critic learns while theta = 1 too: the action heads get exactly BC's gradients, the value head the
+    # value loss's.
     policy.zero_grad()
-    paper = PPOConfig(value_loss_always=False)  # the paper's formula: theta = 1 is BC and nothing else
-    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=paper, bc_forward=policy.forward)
+    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward)
     loss.backward()
-    for name, grad in _grads(policy).items():
-        torch.testing.assert_close(grad, bc_grads[name], msg=name)
-
-    # Our default also fits the critic while theta = 1: the action heads still get exactly BC's gradients,
-    # and the value head gets the value loss's.
-    policy.zero_grad()
-    bcrl_loss(agent, minibatch, demo_batch, theta=1.0, cfg=PPOConfig(), bc_forward=policy.forward)[0].backward()
     with_critic = _grads(policy)
     for name in with_critic:
         if any(head in name for head in ("delta_pos_head", "delta_quat_head", "gripper_head", "log_std")):
-            torch.testing.assert_close(with_critic[name], bc_grads[name], msg=name)
+            assert_close_to_scale(with_critic[name], bc_grads[name], rtol=1e-5, msg=name)
     value_grads = [g for n, g in with_critic.items() if "value_head" in n]
     assert value_grads and all(g.abs().sum() > 0 for g in value_grads)
 
@@ -195,7 +176,7 @@ def test_gradient_share_weighting_makes_theta_the_bc_share(lowdim_dataset_root):
     assert abs(metrics["bc_scale"] - 1) > 0.3  # the BC term is really re-weighted here
     for name, grad in _grads(policy).items():
         expected = plain_grads[name] + theta * (metrics["bc_scale"] - 1) * bc_grads[name]
-        torch.testing.assert_close(grad, expected, rtol=1e-4, atol=1e-6, msg=name)
+        assert_close_to_scale(grad, expected, rtol=1e-4, msg=name)
 
     _, pure_ppo = bcrl_loss(agent, minibatch, demo_batch, theta=0.0, cfg=share_cfg, bc_forward=policy.forward)
     assert "bc_scale" not in pure_ppo

@@ -32,11 +32,8 @@ def test_step_variant_decays_by_factor_every_period_after_start():
     assert theta_at(cfg, 20_000) == pytest.approx(0.97**100)
 
 
-def test_constant_and_dapg():
+def test_constant():
     assert theta_at(ScheduleConfig(type="constant", constant_theta=0.3), 12345) == 0.3
-    dapg = ScheduleConfig(type="dapg", dapg_lambda0=0.1, dapg_lambda1=0.9)
-    assert theta_at(dapg, 0, ppo_iteration=0) == pytest.approx(0.1)
-    assert theta_at(dapg, 999, ppo_iteration=3) == pytest.approx(0.1 * 0.9**3)
 
 
 def test_theta_min_floors_the_decaying_schedules_only():
@@ -47,7 +44,6 @@ def test_theta_min_floors_the_decaying_schedules_only():
     assert theta_at(three_phase, 300) == 0.2 and theta_at(three_phase, 10**9) == 0.2  # after phi: the floor, not 0
     step = ScheduleConfig(type="step", step_start=0, step_every=1, step_factor=0.5, theta_min=0.1)
     assert theta_at(step, 1) == 0.5 and theta_at(step, 50) == 0.1
-    assert theta_at(ScheduleConfig(type="dapg", theta_min=0.05), 0, ppo_iteration=1000) == 0.05
     assert theta_at(ScheduleConfig(type="constant", constant_theta=0.0, theta_min=0.3), 5) == 0.0
     with pytest.raises(ValueError):
         ScheduleConfig(type="three_phase", theta_min=1.5)
@@ -71,7 +67,7 @@ def test_run_label_names_the_method_and_the_floor(tmp_path):
     from pathlib import Path
 
     from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
-    from lerobot_bcrl.rl.ppo import FinetuneConfig
+    from lerobot_bcrl.rl.configuration import FinetuneConfig
 
     cfg = FinetuneConfig(policy=BCRLConfig(), output_dir=Path("unused"), total_env_steps=1000)
     assert cfg.method == "PPO from scratch"

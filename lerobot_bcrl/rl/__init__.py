@@ -1,4 +1,5 @@
-"""BC+RL fine-tuning: PPO with a decaying behavioural-cloning term (method.md section 4).
+"""BC+RL fine-tuning: PPO with a decaying behavioural-cloning term (docs/method.md section 4), `bcrl-finetune`.
 
-`schedule.py` gives theta_t, `rollout.py` the env workers, `ppo.py` the algorithm and the `bcrl-finetune` CLI.
+`ppo.py` holds the algorithm and the loop; `configuration.py` the command line, `cli.py` the entry point,
+`build.py`, `rollout.py`, `schedule.py`, `demo_buffer.py`, `checkpoint.py` and `logger.py` one part each.
 """

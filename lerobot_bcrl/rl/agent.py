@@ -13,15 +13,12 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from lerobot_bcrl.rl.normalization import find_normalizer, read_observation_stats, write_observation_stats
-
-NORMALIZER_PREFIX = "normalizer."  # state_dict keys of observation stats (policy weights never start so)
 
 
 class Agent(Protocol):
     module: nn.Module  # the parameters PPO optimises
 
-    def state_dict(self) -> dict[str, Tensor]: ...  # what rollout workers receive: weights (+ observation stats)
+    def state_dict(self) -> dict[str, Tensor]: ...  # what rollout workers receive: the weights
     def load_state_dict(self, state: dict[str, Tensor]) -> None: ...
 
     def observation_batch(self, raw_obs: dict[str, np.ndarray]) -> dict[str, Tensor]: ...
@@ -78,26 +75,17 @@ class BCRLAgent:
         )
         return cls(policy.to("cpu"), preprocessor)
 
-    # Weights plus the normaliser's low-dim observation stats, which `--ppo.obs_normalization=running` moves.
     def state_dict(self) -> dict[str, Tensor]:
-        stats = read_observation_stats(find_normalizer(self.preprocessor))
-        return {**self.policy.state_dict(), **{NORMALIZER_PREFIX + k: v for k, v in stats.items()}}
+        return self.policy.state_dict()
 
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
-        stats = {k.removeprefix(NORMALIZER_PREFIX): v for k, v in state.items() if k.startswith(NORMALIZER_PREFIX)}
-        self.policy.load_state_dict({k: v for k, v in state.items() if not k.startswith(NORMALIZER_PREFIX)})
-        if stats:
-            write_observation_stats(find_normalizer(self.preprocessor), stats)
-
-    @staticmethod
-    def lerobot_observation(raw_obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
-        """Env observations as LeRobot names them ('observation.state', ...), not normalised yet."""
-        from lerobot.envs.utils import preprocess_observation
-
-        return preprocess_observation(unflatten_observation(raw_obs))
+        self.policy.load_state_dict(state)
 
     def observation_batch(self, raw_obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
-        return self.preprocessor(self.lerobot_observation(raw_obs))
+        """Env observations as LeRobot names them ('observation.state', ...), through the policy's preprocessor."""
+        from lerobot.envs.utils import preprocess_observation
+
+        return self.preprocessor(preprocess_observation(unflatten_observation(raw_obs)))
 
     # PPO learns on the raw sample [delta_pos / scale, quat (4), gripper class]: its log-prob is exact. The env
     # gets its projection (clamped |delta_pos|, unit quaternion, -1/+1 gripper) from `to_env_action`; taking
@@ -124,7 +112,7 @@ class BCRLAgent:
         return self.policy.to_env_action(raw_actions[:, :7], raw_actions[:, 7].long())
 
     def mean_action(self, obs):
-        return self.policy.select_action(obs, sample=False)
+        return self.policy.select_action(obs)
 
     def value(self, obs):
         return self.policy.model(obs).value

@@ -170,33 +170,26 @@ class RolloutWorker:
 
     @torch.no_grad()
     def evaluate(self, state_dict: dict[str, torch.Tensor] | None, seeds: list[int],
-                 annotations: dict[str, float] | None = None, sample: bool = False) -> list[EpisodeStats]:
-        """Episodes from the given seeds on a separate env, deterministic (mean, argmax) by default; with
-        `sample`, actions drawn as in training (the policy PPO optimises), from torch's RNG seeded with the
-        episode seed. `annotations` (e.g. theta_t, env steps) go beside them into rerun when the eval env
-        logs there."""
+                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]:
+        """Deterministic episodes (mean, argmax) from the given seeds on a separate env. `annotations` (e.g.
+        theta_t, env steps) go beside them into rerun when the eval env logs there."""
         self._load(state_dict)
         self.agent.module.eval()
         if self.eval_env is None:
             self.eval_env = self.make_eval_env()
         results = []
         for episode_seed in seeds:
-            with torch.random.fork_rng(devices=[]):  # reproducible, and the training RNG stream stays as it was
-                torch.manual_seed(int(episode_seed))
-                results.append(self._evaluate_episode(int(episode_seed), annotations, sample))
+            results.append(self._evaluate_episode(int(episode_seed), annotations))
         return results
 
-    def _evaluate_episode(self, episode_seed: int, annotations: dict[str, float] | None, sample: bool) -> EpisodeStats:
+    def _evaluate_episode(self, episode_seed: int, annotations: dict[str, float] | None) -> EpisodeStats:
         obs, _ = self.eval_env.reset(seed=episode_seed)
         rerun_log.annotate_rollouts(annotations or {})
         stats = EpisodeStats(0.0, 0, False, None, seed=episode_seed)
         done = False
         while not done:
             batch = self.agent.observation_batch(stack_observations([flatten_observation(obs)]))
-            if sample:
-                action = self.agent.to_env_action(self.agent.sample(batch)[0])[0].numpy()
-            else:
-                action = self.agent.mean_action(batch)[0].numpy()
+            action = self.agent.mean_action(batch)[0].numpy()
             obs, reward, terminated, truncated, info = self.eval_env.step(action)
             stats.record_step(reward, info)
             done = terminated or truncated
@@ -214,7 +207,7 @@ class RolloutWorkers(Protocol):
 
     def collect(self, state_dict: dict[str, torch.Tensor], steps_per_env: int) -> Trajectories: ...
     def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int],
-                 annotations: dict[str, float] | None = None, sample: bool = False) -> list[EpisodeStats]: ...
+                 annotations: dict[str, float] | None = None) -> list[EpisodeStats]: ...
     def close(self) -> None: ...
 
 
@@ -231,9 +224,9 @@ class InlineWorkers:
     def collect(self, state_dict, steps_per_env):
         return Trajectories.concatenate([w.collect(state_dict, steps_per_env) for w in self.workers])
 
-    def evaluate(self, state_dict, seeds, annotations=None, sample=False):
+    def evaluate(self, state_dict, seeds, annotations=None):
         parts = split_evenly(list(seeds), len(self.workers))
-        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part, annotations, sample)]
+        return [e for w, part in zip(self.workers, parts) for e in w.evaluate(state_dict, part, annotations)]
 
     def close(self):
         for w in self.workers:
@@ -316,11 +309,11 @@ class ProcessWorkers:
         parts = self._call_all("collect", [(state_dict, steps_per_env)] * len(self.connections))
         return Trajectories.concatenate(parts)
 
-    def evaluate(self, state_dict, seeds, annotations=None, sample=False):
+    def evaluate(self, state_dict, seeds, annotations=None):
         state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
         parts = self._call_all(
             "evaluate",
-            [(state_dict, part, annotations, sample) for part in split_evenly(list(seeds), len(self.connections))],
+            [(state_dict, part, annotations) for part in split_evenly(list(seeds), len(self.connections))],
         )
         return [e for part in parts for e in part]
 

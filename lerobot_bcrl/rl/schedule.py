@@ -1,7 +1,7 @@
 """theta_t, the weight of the BC term in `L = theta_t * L_BC + (1 - theta_t) * L_PPO` (method.md section 4).
 
-Schedules are functions of the optimisation step (plus, for DAPG, the PPO iteration); their state is one
-integer, saved with every checkpoint so that a resumed run continues the same theta_t.
+Schedules are functions of the optimisation step; the counters are saved with every checkpoint so that a resumed
+run continues the same theta_t.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-SCHEDULE_TYPES = ("auto", "three_phase", "step", "constant", "dapg")
+SCHEDULE_TYPES = ("auto", "three_phase", "step", "constant")
 
 
 @dataclass
@@ -18,7 +18,6 @@ class ScheduleConfig:
     # three_phase: 1 before alpha, exp(-(t - alpha) / beta) until phi, 0 after (the paper's schedule).
     # step: 1 until step_start, then x step_factor every step_every optimisation steps (its step variant).
     # constant: theta_t = constant_theta always (1 = pure BC, 0 = pure PPO).
-    # dapg: lambda0 * lambda1^k, k = PPO iteration (Rajeswaran et al. 2018, for comparison).
     type: str = "auto"
     alpha: int = 0  # optimisation steps of pure BC before the decay starts
     beta: float = 2000.0  # decay time constant, in optimisation steps
@@ -27,9 +26,7 @@ class ScheduleConfig:
     step_every: int = 100  # step variant: decay period, in optimisation steps
     step_factor: float = 0.97  # step variant: multiplier per period
     constant_theta: float = 0.0  # constant schedule's value
-    dapg_lambda0: float = 0.1  # DAPG: initial weight
-    dapg_lambda1: float = 0.95  # DAPG: decay per PPO iteration
-    # Floor of the decaying schedules (three_phase, step, dapg): theta_t = max(theta_t, theta_min). 0 is the
+    # Floor of the decaying schedules (three_phase, step): theta_t = max(theta_t, theta_min). 0 is the
     # paper (pure PPO after phi); > 0 keeps a BC anchor for good (docs/RESULTS.md: pure PPO collapsed here).
     theta_min: float = 0.0
 
@@ -48,14 +45,14 @@ class ScheduleConfig:
         return 0.0 if self.type == "constant" else self.theta_min
 
 
-def theta_at(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int = 0) -> float:
-    """theta_t in [0, 1] after `optim_step` optimisation steps (and `ppo_iteration` rollouts, for DAPG)."""
+def theta_at(cfg: ScheduleConfig, optim_step: int) -> float:
+    """theta_t in [0, 1] after `optim_step` optimisation steps."""
     if cfg.type == "constant":
         return cfg.constant_theta
-    return max(_decaying_theta(cfg, optim_step, ppo_iteration), cfg.floor)
+    return max(_decaying_theta(cfg, optim_step), cfg.floor)
 
 
-def _decaying_theta(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int) -> float:
+def _decaying_theta(cfg: ScheduleConfig, optim_step: int) -> float:
     if cfg.type == "three_phase":
         if optim_step < cfg.alpha:
             return 1.0
@@ -67,17 +64,15 @@ def _decaying_theta(cfg: ScheduleConfig, optim_step: int, ppo_iteration: int) ->
             return 1.0
         n_decays = (optim_step - cfg.step_start) // cfg.step_every  # 1 at step_start, x factor 100 steps on
         return cfg.step_factor**n_decays
-    if cfg.type == "dapg":
-        return min(1.0, cfg.dapg_lambda0 * cfg.dapg_lambda1**ppo_iteration)
     raise ValueError(f"schedule type {cfg.type!r} has no value until it is resolved (bcrl-finetune resolves 'auto')")
 
 
 @dataclass
 class ScheduleState:
-    """What a checkpoint stores of the schedule: the counters theta_t is a function of."""
+    """The counters a checkpoint stores: optimisation steps (theta_t's clock) and PPO iterations (worker seeds)."""
 
     optim_step: int = 0
     ppo_iteration: int = 0
 
     def theta(self, cfg: ScheduleConfig) -> float:
-        return theta_at(cfg, self.optim_step, self.ppo_iteration)
+        return theta_at(cfg, self.optim_step)
