@@ -301,16 +301,20 @@ def pull(cfg: PullConfig) -> Path:
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    usage = "usage: bcrl-hub push|pull --kind=dataset|policy --repo_id=owner/name --root=DIR [...]"
+    if argv[:1] in (["-h"], ["--help"]):
+        print(f"{usage}\n\n{__doc__}\nEach command's options: bcrl-hub push --help, bcrl-hub pull --help")
+        return
     if not argv or argv[0] not in ("push", "pull"):
-        print("usage: bcrl-hub push|pull --kind=dataset|policy --repo_id=owner/name --root=DIR [...]", file=sys.stderr)
+        print(usage, file=sys.stderr)
         raise SystemExit(2)
     action, rest = argv[0], argv[1:]
     try:
         if action == "push":
-            cfg = draccus.parse(PushConfig, args=rest)
+            cfg = draccus.parse(PushConfig, args=rest, prog="bcrl-hub push")
             print(f"pushed {cfg.kind} {cfg.root or default_root(cfg.repo_id)} -> {push(cfg)}")
         else:
-            cfg = draccus.parse(PullConfig, args=rest)
+            cfg = draccus.parse(PullConfig, args=rest, prog="bcrl-hub pull")
             print(f"pulled {cfg.kind} {cfg.repo_id} -> {pull(cfg)}")
     except HubError as e:
         print(f"bcrl-hub: error: {e}", file=sys.stderr)

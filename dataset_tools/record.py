@@ -44,7 +44,7 @@ from dataset_tools.writer import (
 class BetaDemonstratorsConfig:
     n: int = 0  # number of simulated operators with Beta-distributed noise (0: off)
     max_std: float = 0.2  # noise std of operator i is max_std * Beta(a, b)
-    a: float = 2.0
+    a: float = 2.0  # the Beta distribution's shape parameters
     b: float = 5.0
     max_abs_mean: float = 0.0  # per-operator bias drawn uniformly in [-max_abs_mean, max_abs_mean]
 
@@ -53,10 +53,10 @@ class BetaDemonstratorsConfig:
 class RecordConfig:
     repo_id: str = "local/bcrl_lift"  # dataset id (also the folder name under $HF_LEROBOT_HOME)
     root: Path | None = None  # where to write; default $HF_LEROBOT_HOME/<repo_id>
-    n_episodes: int = 10
+    n_episodes: int = 10  # episodes to record
     seed: int = 0  # episode i resets the env with seed + i; noise is seeded from (seed, i)
     sigma: float = 0.1  # the paper's single demonstrator: N(0, sigma) on every controller action
-    # Several demonstrators (overrides sigma); episode i is recorded by demonstrator i % len(...).
+    # Several demonstrators (overrides sigma); episode i is recorded by demonstrator i mod their number.
     demonstrators: list[DemonstratorConfig] = field(default_factory=list)
     beta_demonstrators: BetaDemonstratorsConfig = field(default_factory=BetaDemonstratorsConfig)
     expert: str = "scripted"  # "scripted", or the path of a LeRobot policy checkpoint (pretrained_model)

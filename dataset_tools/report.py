@@ -219,9 +219,10 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         if r.get("bc_seed") is not None:
             seed = f"{seed} (BC {r['bc_seed']})"
         steps = r["env_steps"] if r.get("selected_env_steps") is None else f"{r['env_steps']} (chosen: {r['selected_env_steps']})"
+        to_lift = "-" if math.isnan(r["steps_to_lift"]) else f"{r['steps_to_lift']:.1f}"  # no episode lifted
         lines.append(f"| {r['sigma']:g} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
-                     f" {r['steps_to_lift']:.1f} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
+                     f" {to_lift} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
     cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],
                   "column": headers[key], **cell} for (dataset, key), cell in sorted(cells.items(), key=lambda kv: str(kv[0]))]
     return "\n".join(lines) + "\n", cell_list
@@ -283,7 +284,8 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
             for handle, label in zip(*ax.get_legend_handles_labels()):
                 legend.setdefault(label, handle)
         handles, labels = list(legend.values()), list(legend)
-        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+        if labels:  # none where no run has a point yet (a run shorter than one episode)
+            fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
         fig.tight_layout(rect=(0, 0.06 * ((len(labels) + 3) // 4), 1, 1))
         fig.savefig(output_dir / filename, dpi=110, bbox_inches="tight")  # long run labels: keep the legend whole
         plt.close(fig)

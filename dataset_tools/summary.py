@@ -6,6 +6,7 @@ Example: bcrl-summary --root=data/lift_sigma0.1
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,7 +75,10 @@ def print_summary(summary: dict, root: Path | None = None) -> None:
     print(f"  features: {', '.join(summary['features'])}")
     if "success_rate" in summary:
         print(f"  success rate: {summary['success_rate']:.0%}")
-        print(f"  mean return: {summary['mean_return']:.1f} +/- {summary['return_ci95']:.1f} (95% CI; max 450)")
+        if math.isnan(summary["return_ci95"]):  # a single episode has no interval
+            print(f"  return: {summary['mean_return']:.1f} (max 450)")
+        else:
+            print(f"  mean return: {summary['mean_return']:.1f} +/- {summary['return_ci95']:.1f} (95% CI; max 450)")
         if summary["mean_steps_to_lift"] is not None:
             print(f"  mean steps to lift (successful episodes): {summary['mean_steps_to_lift']:.1f}")
         if len(summary["by_demonstrator"]) > 1:

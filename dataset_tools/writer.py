@@ -113,7 +113,22 @@ def write_episode(dataset, frames: dict[str, np.ndarray], task: str, source: str
         frame = {key: _cast(values[t], dataset.features[key]) for key, values in frames.items()}
         frame["task"] = task
         dataset.add_frame(frame)
-    dataset.save_episode()
+    with _no_datasets_progress_bars():
+        dataset.save_episode()
+
+
+@contextlib.contextmanager
+def _no_datasets_progress_bars() -> Iterator[None]:
+    """LeRobot's save_episode runs a `datasets` map with its own bar; once per episode, it breaks our tqdm line."""
+    from datasets.utils import logging as datasets_logging
+
+    was_enabled = datasets_logging.is_progress_bar_enabled()
+    datasets_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            datasets_logging.enable_progress_bar()
 
 
 def _cast(value, feature: dict):

@@ -109,7 +109,10 @@ def test_bc_loss_skips_frames_flagged_not_to_imitate(lowdim_dataset_root):
     # the same wrong labels, all flagged to imitate: they do count (so the check above is not vacuous)
     loss_unmasked, _ = loss_and_grad(dict(flagged, **{AUX_IMITATE_KEY: torch.ones(16, 1, dtype=torch.bool)}))
     assert loss_flagged == pytest.approx(loss_subset, rel=1e-5)
-    assert torch.allclose(grad_flagged, grad_subset, atol=1e-6)
+    # The two batches sum in different orders (multi-threaded BLAS picks its kernels by shape): float32
+    # rounding, relative to the largest gradient (~1e-7 of it); a flagged frame that counted, or a mean over
+    # all 16 frames, moves the gradient by a third of it or more.
+    torch.testing.assert_close(grad_flagged, grad_subset, rtol=1e-4, atol=1e-5 * grad_subset.abs().max().item())
     assert loss_unmasked > 2 * loss_subset  # 4.6-6.5x over five random batches and inits
     nothing = dict(batch, **{AUX_IMITATE_KEY: torch.zeros(16, 1, dtype=torch.bool)})
     loss_none, grad_none = loss_and_grad(nothing)

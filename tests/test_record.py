@@ -96,7 +96,7 @@ def test_episode_metadata(image_dataset):
     ds = _load(image_dataset.root)
     for i in range(2):
         rewards = [ds[i * 30 + t][F.REWARD_KEY].item() for t in range(30)]
-        assert episodes["episode_return"][i] == pytest.approx(sum(rewards), abs=1e-4)
+        assert episodes["episode_return"][i] == pytest.approx(sum(rewards), rel=1e-6)
         assert episodes["success"][i] == any(r > 0 for r in rewards)
         assert episodes["noise_std"][i] == pytest.approx(0.1)
         assert episodes["seed"][i] == 7 + i and episodes["demonstrator_id"][i] == 0

@@ -14,7 +14,7 @@ from policy_fixtures import lowdim_dataset_root  # noqa: F401
 from dataset_tools.report import (ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
                                   wilson_ci95)
 from lerobot_bcrl.features import LIFT_REWARD
-from lerobot_bcrl.rl.ppo import LOG_COLUMNS
+from lerobot_bcrl.rl.logger import LOG_COLUMNS
 from lerobot_bcrl.rl.rollout import EpisodeStats
 
 
