@@ -93,10 +93,7 @@ def summarize_run(run_dir: Path) -> dict:
     # One dataset, one table row, however a run spelled its path (older runs wrote it relative to their cwd).
     dataset_root = str(Path(result["dataset_root"]).resolve())
     demo = demonstrators(result["dataset_repo_id"], dataset_root)
-    sampled = result.get("episodes_sampled", [])  # `--final_eval_sampled=true`: actions drawn as in training
-    sampled_rate, sampled_ci95 = success_rate(sampled) if sampled else (None, None)
     return {
-        "sampled_success": sampled_rate, "sampled_success_ci95": sampled_ci95,
         "run": str(run_dir), "dataset_root": dataset_root, "method": result["method"],
         "seed": result.get("seed"),  # bcrl-finetune's --seed (runs before it was recorded: None)
         "bc_seed": bc_training_seed(result.get("policy_path")),
@@ -206,22 +203,17 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
         for dataset in datasets:
             demo = next(r for r in rows if (r["sigma"], r["dataset_root"]) == dataset)
             lines.append("| " + " | ".join(first_columns(demo) + [cell_text((dataset, k)) for k in headers]) + " |")
-    any_sampled = any(r["sampled_success"] is not None for r in rows)
     lines += ["", "Details", "", "| sigma | method | env steps | seed (BC's) | episodes | return (95 % CI) | % recovered |"
-              " success (95 % CI) |" + (" success, sampled actions |" if any_sampled else "") + " steps to lift |"
-              " lost after lift: episodes, return | run |",
-              "|---" * (11 + any_sampled) + "|"]
+              " success (95 % CI) | steps to lift | lost after lift: episodes, return | run |",
+              "|---" * 11 + "|"]
     for r in sorted(rows, key=lambda r: (r["sigma"], r["method"], r["env_steps"], str(r.get("seed")))):
-        sampled_cell = ""
-        if any_sampled:
-            sampled_cell = f" {success_cell(r['sampled_success'], r['sampled_success_ci95'])} |" if r["sampled_success"] is not None else " - |"
         seed = "-" if r.get("seed") is None else r["seed"]
         if r.get("bc_seed") is not None:
             seed = f"{seed} (BC {r['bc_seed']})"
         steps = r["env_steps"] if r.get("selected_env_steps") is None else f"{r['env_steps']} (chosen: {r['selected_env_steps']})"
         to_lift = "-" if math.isnan(r["steps_to_lift"]) else f"{r['steps_to_lift']:.1f}"  # no episode lifted
         lines.append(f"| {r['sigma']:g} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
-                     f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |{sampled_cell}"
+                     f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |"
                      f" {to_lift} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
     cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],
                   "column": headers[key], **cell} for (dataset, key), cell in sorted(cells.items(), key=lambda kv: str(kv[0]))]

@@ -6,6 +6,8 @@ MLP in the tests) runs through the same rollout workers and PPO update.
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 from typing import Protocol
 
@@ -67,7 +69,8 @@ class BCRLAgent:
 
         from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy
 
-        policy = BCRLPolicy.from_pretrained(str(pretrained_dir))
+        with contextlib.redirect_stdout(io.StringIO()):  # LeRobot prints "Loading weights ..." in every worker
+            policy = BCRLPolicy.from_pretrained(str(pretrained_dir))
         policy.config.device = "cpu"
         preprocessor, _ = make_pre_post_processors(
             policy.config, pretrained_path=str(pretrained_dir),

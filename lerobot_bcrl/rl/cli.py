@@ -2,6 +2,7 @@
 ending with a short summary of the result and where it was written."""
 
 import logging
+import math
 import os
 
 from lerobot.configs import parser
@@ -13,12 +14,13 @@ from lerobot_bcrl.rl.ppo import finetune
 @parser.wrap()
 def finetune_cli(cfg: FinetuneConfig) -> None:
     result = finetune(cfg)
+    interval = "" if math.isnan(result["eval_return_ci95"]) else f" +/- {result['eval_return_ci95']:.1f} (95 % CI)"
+    lift = "" if math.isnan(result["eval_steps_to_lift"]) else f", steps to lift {result['eval_steps_to_lift']:.1f}"
     lines = [
         f"\nbcrl-finetune ({result['method']}): {result['env_steps']} env steps, {result['optim_step']} optimisation"
         f" steps, theta_t = {result['theta']:.4f}, {result['wall_s']:.0f} s",
-        f"  final evaluation over {result['eval_episodes']} episodes: return {result['eval_return']:.1f}"
-        f" +/- {result['eval_return_ci95']:.1f} (95 % CI), success {100 * result['eval_success']:.0f} %,"
-        f" steps to lift {result['eval_steps_to_lift']:.1f}",
+        f"  final evaluation over {result['eval_episodes']} episodes: return {result['eval_return']:.1f}{interval},"
+        f" success {100 * result['eval_success']:.0f} %{lift}",
     ]
     if result["validation"]:
         chosen = result["validation"]

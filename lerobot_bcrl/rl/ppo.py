@@ -262,7 +262,8 @@ def finetune(cfg) -> dict:
         return metrics
 
     start_time, last_eval, last_save, last_train = time.time(), env_steps, env_steps, {}
-    progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}")
+    progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}",
+                    disable=cfg.total_env_steps == 0)
     try:
         if cfg.select == "best_validation" and cfg.total_env_steps > 0 and best is None:  # the starting policy
             logger.log({"env_steps": env_steps, "ppo_iteration": schedule.ppo_iteration, "optim_step": schedule.optim_step,
