@@ -117,3 +117,14 @@ def test_bc_loss_skips_frames_flagged_not_to_imitate(lowdim_dataset_root):
     nothing = dict(batch, **{AUX_IMITATE_KEY: torch.zeros(16, 1, dtype=torch.bool)})
     loss_none, grad_none = loss_and_grad(nothing)
     assert loss_none == 0.0 and not grad_none.any()
+
+
+def test_the_aux_patch_refuses_a_lerobot_it_was_not_written_for(monkeypatch):
+    import lerobot
+
+    from lerobot_bcrl.policies.bcrl.aux_targets import LEROBOT_VERSION, keep_aux_targets_in_batches
+
+    keep_aux_targets_in_batches()  # the pinned version: fine, and idempotent
+    monkeypatch.setattr(lerobot, "__version__", "0.7.0")
+    with pytest.raises(RuntimeError, match=f"lerobot=={LEROBOT_VERSION} \\(found 0.7.0\\)"):
+        keep_aux_targets_in_batches()
