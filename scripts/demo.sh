@@ -36,7 +36,7 @@ echo "== 2/5 BC: lerobot-train, $BC_STEPS steps =="
 run_logged "$OUT/logs/lerobot_train.log" \
   $BIN/lerobot-train --config_path=configs/bc_lift_lowdim.json $DATASET --output_dir="$OUT/bc" \
   --steps="$BC_STEPS" --batch_size=64 --save_freq="$BC_STEPS" --log_freq=500
-grep -E "step:|End of training" "$OUT/logs/lerobot_train.log" | sed -E 's/^INFO [0-9-]+ [0-9:]+ +[^ ]+ //' || true
+tr '\r' '\n' < "$OUT/logs/lerobot_train.log" | grep -E "step:|End of training" | sed -E 's/^.*INFO [0-9-]+ [0-9:]+ +[^ ]+ //' || true
 BC_CKPT="$OUT/bc/checkpoints/last/pretrained_model"
 
 echo "== 3/5 BC+RL: bcrl-finetune, $RL_STEPS env steps (and BC only, 0 env steps, for the table) =="

@@ -4,6 +4,8 @@ exploration std, and the rollout workers' recipes (envs, agent, seeds).
 
 from __future__ import annotations
 
+import contextlib
+import io
 from functools import partial
 from pathlib import Path
 
@@ -20,7 +22,8 @@ def build_policy(policy_cfg, dataset):
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
     policy_cfg.device = "cpu"
-    policy = make_policy(policy_cfg, ds_meta=dataset.meta)
+    with contextlib.redirect_stdout(io.StringIO()):  # LeRobot prints "Loading weights from local directory"
+        policy = make_policy(policy_cfg, ds_meta=dataset.meta)
     pretrained = str(policy_cfg.pretrained_path) if policy_cfg.pretrained_path else None
     processor_kwargs = {"dataset_stats": dataset.meta.stats} if pretrained is None else {
         "preprocessor_overrides": {"device_processor": {"device": "cpu"}}}
