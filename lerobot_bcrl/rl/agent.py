@@ -16,7 +16,6 @@ import torch
 from torch import Tensor, nn
 
 
-
 class Agent(Protocol):
     module: nn.Module  # the parameters PPO optimises
 

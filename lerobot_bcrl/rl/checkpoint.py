@@ -32,7 +32,7 @@ def point_symlink(checkpoints_dir: Path, name: str, checkpoint_dir: Path) -> Non
 
 
 def save_checkpoint(cfg, env_steps: int, agent, postprocessor, optimizer, schedule_state: ScheduleState,
-                    theta: float, reward_scaler=None, best: dict | None = None) -> Path:
+                    reward_scaler=None, best: dict | None = None) -> Path:
     """Write `checkpoints/<env_steps>` through a temporary folder and point `last` at it. `best`: the validation
     evaluation that chose the result so far (`--select=best_validation`), kept for a resume."""
     from lerobot.optim.optimizers import save_optimizer_state
@@ -52,7 +52,7 @@ def save_checkpoint(cfg, env_steps: int, agent, postprocessor, optimizer, schedu
     save_optimizer_state(optimizer, state_dir)
     save_rng_state(state_dir)
     training_step = {"env_steps": env_steps, "optim_step": schedule_state.optim_step,
-                     "ppo_iteration": schedule_state.ppo_iteration, "theta": theta,
+                     "ppo_iteration": schedule_state.ppo_iteration, "theta": schedule_state.theta(cfg.schedule),
                      "reward_scaler": reward_scaler.state_dict() if reward_scaler else None, "best": best}
     (state_dir / TRAINING_STEP_FILE).write_text(json.dumps(training_step, indent=2))
     if final_dir.exists():

@@ -237,7 +237,8 @@ def finetune(cfg) -> dict:
         reset_exploration_std(policy, cfg.ppo.reset_log_std, cfg.ppo.reset_log_std_rotation)
     # Fresh worker seeds after a resume, so a resumed run does not replay the episodes it has seen.
     workers = start_workers(cfg, policy, preprocessor, postprocessor, cfg.seed + 104_729 * schedule.ppo_iteration)
-    demo_batches = DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule.ppo_iteration, preprocessor)
+    demo_batches = (DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule.ppo_iteration, preprocessor)
+                    if env_steps < cfg.total_env_steps else None)  # an evaluation-only run never reads them
     logger = RunLogger(cfg, env_steps if cfg.resume else None)
 
     def evaluate(n_episodes: int, seed_offset: int) -> tuple[dict, list]:
@@ -248,8 +249,7 @@ def finetune(cfg) -> dict:
     def save():
         nonlocal last_save
         last_save = env_steps
-        return save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule, schedule.theta(cfg.schedule),
-                               reward_scaler, best)
+        return save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule, reward_scaler, best)
 
     def validate() -> dict:
         """A periodic evaluation; with --select=best_validation a better policy is saved as checkpoints/best."""
@@ -276,10 +276,11 @@ def finetune(cfg) -> dict:
             rewards = reward_scaler(trajectories.rewards, trajectories.dones) if reward_scaler else trajectories.rewards
             metrics = ppo_update(agent, optimizer, trajectories, rewards, cfg.ppo, cfg.schedule, schedule,
                                  demo_batches, policy.forward)
-            last_train = summarize_episodes(trajectories.episodes, "train") or last_train
+            train = summarize_episodes(trajectories.episodes, "train")
+            last_train = train or last_train  # the progress bar shows the last finished episodes
             row = {"env_steps": env_steps, "ppo_iteration": schedule.ppo_iteration, "optim_step": schedule.optim_step,
                    "wall_s": time.time() - start_time, "collect_s": learn_start - collect_start,
-                   "learn_s": time.time() - learn_start, **metrics, **summarize_episodes(trajectories.episodes, "train"),
+                   "learn_s": time.time() - learn_start, **metrics, **train,
                    "theta": schedule.theta(cfg.schedule)}  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
                 row.update(validate())
