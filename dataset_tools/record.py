@@ -72,8 +72,9 @@ class RecordConfig:
     video: bool = True  # images as MP4 video (True) or PNG frames in the parquet files (False)
     image_size: int = 128
     episode_length: int = 200  # the paper's horizon
-    cheap_render: bool = True  # no shadows/reflections: ~3x faster software rendering
+    cheap_render: bool = True  # simplified meshes, no shadows/reflections (docs/environment.md)
     dense_reward: bool = False  # store robosuite's shaped reward instead of the sparse one
+    sim_step: str = "fast"  # or "robosuite": robosuite's own env.step (the same frames within 1e-8)
     overwrite: bool = False  # replace an existing dataset at root
     device: str = "cpu"  # for a policy expert
 
@@ -181,6 +182,7 @@ def record(cfg: RecordConfig) -> Path:
         cheap_render=cfg.cheap_render,
         dense_reward=cfg.dense_reward,
         horizon=cfg.episode_length,
+        sim_step=cfg.sim_step,
     )
     expert = make_expert(cfg)
     rows = []

@@ -27,12 +27,15 @@ class LiftEnvConfig(EnvConfig):
     episode_length: int = 200  # the paper's horizon
     obs_type: str = "pixels_agent_pos"  # or "agent_pos" (low-dim: agent_pos + environment_state)
     image_size: int = 128  # square agentview camera, pixels
-    cheap_render: bool = True  # no shadows/reflections/skybox: ~3x faster software rendering
+    cheap_render: bool = True  # simplified meshes, no shadows/reflections/skybox (docs/environment.md)
     dense_reward: bool = False  # robosuite's shaped reward instead of the paper's sparse 2.25/lifted step
     terminate_on_success: bool = False  # the paper keeps going: return counts lifted steps
     render_mode: str = "rgb_array"
     render_size: int = 128  # size of frames from render() (lerobot-eval videos)
     rerun_dir: str | None = None  # write one rerun .rrd per episode here (with our policy's predictions)
+    # "fast": robosuite's controller computed without its per-substep Python, the same trajectories within 1e-8
+    # (docs/environment.md); "robosuite": robosuite's own env.step, the reference
+    sim_step: str = "fast"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(ACTION_DIM,)),
@@ -70,5 +73,6 @@ class LiftEnvConfig(EnvConfig):
             "render_mode": self.render_mode,
             "render_size": self.render_size,
             "rerun_dir": self.rerun_dir,
+            "sim_step": self.sim_step,
             "max_episode_steps": self.episode_length,
         }

@@ -13,6 +13,7 @@ import numpy as np
 
 from lerobot_bcrl import features, geometry, rerun_log
 from lerobot_bcrl.envs import controller
+from lerobot_bcrl.envs.fast_control import FastControlStep
 from lerobot_bcrl.envs.rendering import CameraRenderer
 from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, STATE_DIM
 
@@ -20,6 +21,9 @@ import robosuite  # noqa: E402  (after rendering.py has set MUJOCO_GL)
 
 TASK_DESCRIPTION = "Lift the red cube off the table."
 OBS_TYPES = ("pixels_agent_pos", "agent_pos")
+SIM_STEPS = ("fast", "robosuite")
+# The robosuite observables _observation() reads.
+OBSERVABLES = ("robot0_eef_pos", "robot0_eef_quat_site", "robot0_gripper_qpos", "robot0_joint_pos", "cube_pos", "cube_quat")
 
 
 def cube_yaw_features(eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> np.ndarray:
@@ -47,9 +51,12 @@ class LiftEnv(gym.Env):
         render_size: int = 128,
         model_seed: int = 0,
         rerun_dir: str | None = None,
+        sim_step: str = "fast",
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type must be one of {OBS_TYPES}, got {obs_type!r}")
+        if sim_step not in SIM_STEPS:
+            raise ValueError(f"sim_step must be one of {SIM_STEPS}, got {sim_step!r}")
         self.obs_type = obs_type
         self.image_size = image_size
         self.horizon = horizon
@@ -70,6 +77,10 @@ class LiftEnv(gym.Env):
             np.random.set_state(outer_state)
         self._model = self._sim_env.sim.model._model
         self._data = self._sim_env.sim.data._data
+        # "fast": robosuite's controller arithmetic without its per-substep Python (fast_control.py), the same
+        # trajectories; "robosuite": robosuite's own env.step, the reference.
+        self._fast_step = FastControlStep(self._sim_env) if sim_step == "fast" else None
+        self._sensors = {name: self._sim_env._observables[name]._sensor for name in OBSERVABLES}
         self._cheap_render = cheap_render
         self._camera = (
             CameraRenderer(self._model, CAMERA_NAME, image_size, image_size, cheap=cheap_render)
@@ -130,6 +141,8 @@ class LiftEnv(gym.Env):
         np.random.set_state(self._robosuite_rng_state)
         try:
             sim_obs = self._sim_env.reset()
+            if self._fast_step is not None:
+                self._fast_step.reset()
         finally:
             self._robosuite_rng_state = np.random.get_state()
             np.random.set_state(outer_state)
@@ -143,7 +156,12 @@ class LiftEnv(gym.Env):
     def step(self, action: np.ndarray):
         controller_action, clamped = controller.delta_action_to_controller(action)
         self.n_clamped_actions += int(clamped)
-        sim_obs, reward, _, _ = self._sim_env.step(controller_action)
+        if self._fast_step is None:
+            sim_obs, reward, _, _ = self._sim_env.step(controller_action)
+        else:
+            self._fast_step.step(controller_action)
+            sim_obs = {name: np.array(sensor({})) for name, sensor in self._sensors.items()}
+            reward = self._sim_env.reward(controller_action)
         self._step_count += 1
         is_success = bool(self._sim_env._check_success())
         terminated = self.terminate_on_success and is_success

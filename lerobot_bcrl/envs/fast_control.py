@@ -1,0 +1,217 @@
+"""robosuite's control step for the Sawyer in Lift, without robosuite's per-substep Python.
+
+robosuite runs its whole controller stack at each of the 25 physics substeps of a control step: the composite
+controller, the OSC_POSE arm controller's reference update (four Jacobian evaluations, name look-ups, copies),
+the gripper controller, the robot's bookkeeping and every observable's timer (80 % of a step's time, docs/RESULTS.md
+#env-throughput). `FastControlStep` does the same arithmetic in the same order:
+
+- once per control step, the goal: robosuite's own `set_goal` of the arm and gripper controllers (the delta's
+  scaling, the "achieved" goal in the base frame, the gripper's speed-limited command), so what an action means
+  is robosuite's by construction;
+- at each substep, the torque law of `OperationalSpaceController.run_controller` (position and orientation error,
+  velocity damping, the decoupled operational-space wrench, gravity compensation, the nullspace posture torque)
+  from MuJoCo's arrays, calling robosuite's own `opspace_matrices`, `orientation_error` and `nullspace_torques`,
+  one `mj_jacSite` per site and one `mj_fullM`; the gripper's actuator command is constant over the control step.
+
+The substep loop is MuJoCo's `mj_step1` / control / `mj_step2`, as robosuite's with `lite_physics`. The
+arithmetic is the same operations on the same values, so the trajectories are identical to robosuite's
+(tests/test_fast_control.py asserts it over whole episodes). Controller settings other than the ones the Lift env
+uses (robosuite's default Sawyer OSC_POSE: fixed impedance, delta input in the base frame, no interpolator, no
+limits) are refused rather than approximated.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numba
+import numpy as np
+from robosuite.controllers.parts.arm.osc import OperationalSpaceController
+from robosuite.controllers.parts.gripper.simple_grip import SimpleGripController
+from robosuite.utils.control_utils import orientation_error
+
+ARM = "right"
+GRIPPER = "right_gripper"
+
+
+def _check_supported(sim_env) -> None:
+    """Raise if robosuite's controllers are configured in a way `FastControlStep` does not compute."""
+    robot = sim_env.robots[0]
+    arm, gripper = robot.part_controllers.get(ARM), robot.part_controllers.get(GRIPPER)
+    problems = []
+    if len(sim_env.robots) != 1 or set(robot.part_controllers) != {ARM, GRIPPER}:
+        problems.append(f"one arm and one gripper controller, got {sorted(robot.part_controllers)}")
+    if not isinstance(arm, OperationalSpaceController) or not isinstance(gripper, SimpleGripController):
+        problems.append(f"OSC arm and simple gripper controllers, got {type(arm).__name__}, {type(gripper).__name__}")
+    else:
+        expected = {
+            "use_ori": True, "input_type": "delta", "input_ref_frame": "base", "impedance_mode": "fixed",
+            "_goal_update_mode": "achieved", "uncoupling": True, "lite_physics": True,
+            "interpolator_pos": None, "interpolator_ori": None, "position_limits": None, "orientation_limits": None,
+        }  # fmt: skip
+        problems += [f"{k}={getattr(arm, k)!r}" for k, v in expected.items() if getattr(arm, k) != v]
+        if gripper.interpolator is not None or not gripper.use_action_scaling:
+            problems.append("gripper controller with an interpolator or without action scaling")
+    if arm is not None:
+        model = sim_env.sim.model._model
+        body = model.site_bodyid[model.site(f"{arm.naming_prefix}{arm.part_name}_center").id]
+        while body != 0:  # the base site's velocity is taken as zero: no joint between it and the world
+            if model.body_jntnum[body]:
+                problems.append("a robot base that moves")
+                break
+            body = model.body_parentid[body]
+    if not sim_env.lite_physics:
+        problems.append("env.lite_physics=False")
+    if problems:
+        raise ValueError(f"fast control step does not support this robosuite configuration: {'; '.join(problems)}")
+
+
+class FastControlStep:
+    """One control step of a robosuite Lift env, as robosuite's `env.step` computes its physics.
+
+    Use `reset()` after every robosuite reset, then `step(controller_action)` in place of `env.step` (robosuite's
+    observables and the robot's history buffers are not updated; read observations from `sim.data`).
+    """
+
+    def __init__(self, sim_env):
+        _check_supported(sim_env)
+        self._env = sim_env
+        self._model = sim_env.sim.model._model
+        self._data = sim_env.sim.data._data
+        self.n_substeps = int(sim_env.control_timestep / sim_env.model_timestep)  # robosuite's own expression
+        robot = sim_env.robots[0]
+        arm = robot.part_controllers[ARM]
+        self._eef_site = self._model.site(arm.ref_name).id
+        self._base_site = self._model.site(f"{arm.naming_prefix}{arm.part_name}_center").id
+        self._arm_qpos = np.array(arm.qpos_index, dtype=np.int64)
+        self._arm_dofs = np.array(arm.qvel_index, dtype=np.int64)
+        actuators = robot._ref_actuators_indexes_dict
+        self._arm_actuators = np.array(actuators[ARM])
+        self._gripper_actuators = np.array(actuators[GRIPPER])
+        ctrlrange = self._model.actuator_ctrlrange
+        self._arm_ctrl_low, self._arm_ctrl_high = ctrlrange[self._arm_actuators, 0], ctrlrange[self._arm_actuators, 1]
+        self._gripper_ctrl_low = ctrlrange[self._gripper_actuators, 0]
+        self._gripper_ctrl_high = ctrlrange[self._gripper_actuators, 1]
+        nv = self._model.nv
+        self._jacp, self._jacr = np.zeros((3, nv)), np.zeros((3, nv))
+        self._full_mass_matrix = np.zeros((nv, nv))
+        n_arm = len(self._arm_dofs)
+        self._reference = (
+            np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3),  # ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel
+            np.zeros((3, n_arm)), np.zeros((3, n_arm)), np.zeros((6, n_arm)),  # J_pos, J_ori, J_full
+            np.zeros((n_arm, n_arm)), np.zeros(n_arm), np.zeros(n_arm),  # mass_matrix, joint_pos, joint_vel
+        )  # fmt: skip
+        self._gripper_command: np.ndarray | None = None
+
+    @property
+    def _robot(self):
+        return self._env.robots[0]
+
+    def reset(self) -> None:
+        """Read the state robosuite's reset gave the controllers (they are rebuilt at every reset)."""
+        arm = self._robot.part_controllers[ARM]
+        self._arm = arm
+        self._gripper = self._robot.part_controllers[GRIPPER]
+        self._gains = np.stack([arm.kp, arm.kd]).astype(np.float64)
+        self._gripper_command = None
+
+    def _set_goal(self, controller_action: np.ndarray) -> None:
+        """robosuite's goal for this control step (composite controller `update_state` + `set_goal`)."""
+        robot, arm, gripper = self._robot, self._arm, self._gripper
+        robot.composite_controller.update_state()
+        arm.set_goal(controller_action[:6])
+        gripper.set_goal(robot.gripper[ARM].format_action(controller_action[6:7]))
+        arm.new_update = gripper.new_update = True  # as their run_controller leaves them: refresh at the next goal
+        self._goal_pos = arm.goal_pos
+        self._goal_ori = arm.goal_ori
+        ctrl_range = np.stack([gripper.actuator_min, gripper.actuator_max], axis=-1)
+        bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
+        weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
+        self._gripper_command = np.clip(bias + weight * np.array(gripper.goal_qvel), self._gripper_ctrl_low, self._gripper_ctrl_high)
+
+    def step(self, controller_action: np.ndarray) -> None:
+        """robosuite's `env.step` physics for one 7-D controller action; advances the env's step counter and clock."""
+        env, model, data, arm = self._env, self._model, self._data, self._arm
+        env.timestep += 1
+        for substep in range(self.n_substeps):
+            mujoco.mj_step1(model, data)
+            if substep == 0:
+                self._set_goal(controller_action)
+                # robosuite's first substep runs on the data its set_goal read; right after a reset that is the
+                # data of the controller's construction, before the gripper's joints were placed.
+                reference = (arm.ref_pos, arm.ref_ori_mat, arm.ref_pos_vel, arm.ref_ori_vel, arm.J_pos, arm.J_ori,
+                             arm.J_full, arm.mass_matrix, arm.joint_pos, arm.joint_vel)  # fmt: skip
+            else:
+                mujoco.mj_jacSite(model, data, self._jacp, self._jacr, self._eef_site)
+                mujoco.mj_fullM(model, self._full_mass_matrix, data.qM)
+                reference = self._reference
+                _arm_reference(
+                    data.site_xpos[self._eef_site], data.site_xmat[self._eef_site], self._jacp, self._jacr, data.qvel,
+                    data.qpos, self._full_mass_matrix, self._arm_qpos, self._arm_dofs, *reference,
+                )
+            data.ctrl[self._arm_actuators] = _arm_torques(
+                self._goal_pos, self._goal_ori, data.site_xpos[self._base_site], data.site_xmat[self._base_site],
+                *reference, arm.initial_joint, data.qfrc_bias, self._arm_dofs, self._gains,
+                self._arm_ctrl_low, self._arm_ctrl_high,
+            )
+            data.ctrl[self._gripper_actuators] = self._gripper_command
+            mujoco.mj_step2(model, data)
+        env.cur_time += env.control_timestep
+
+
+@numba.njit(cache=True)
+def _arm_reference(eef_xpos, eef_xmat, jacp, jacr, qvel, qpos, full_mass_matrix, arm_qpos, arm_dofs,
+                   ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel, J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel):  # fmt: skip
+    """The arm controller's `update()` (Controller._update_single_reference and the mass matrix), in place."""
+    ref_pos[:] = eef_xpos
+    ref_ori_mat[:, :] = eef_xmat.reshape((3, 3))
+    ref_pos_vel[:] = np.dot(jacp, qvel)
+    ref_ori_vel[:] = np.dot(jacr, qvel)
+    for j in range(arm_dofs.shape[0]):
+        joint_pos[j] = qpos[arm_qpos[j]]
+        joint_vel[j] = qvel[arm_dofs[j]]
+        for i in range(3):
+            J_pos[i, j] = J_full[i, j] = jacp[i, arm_dofs[j]]
+            J_ori[i, j] = J_full[3 + i, j] = jacr[i, arm_dofs[j]]
+        for i in range(arm_dofs.shape[0]):
+            mass_matrix[i, j] = full_mass_matrix[arm_dofs[i], arm_dofs[j]]
+
+
+@numba.njit(cache=True)
+def _opspace_matrices(mass_matrix, J_full, J_pos, J_ori):
+    """control_utils.opspace_matrices with the operational-space inertias inverted, not pseudo-inverted.
+
+    J M^-1 J^T is symmetric positive definite wherever the Jacobian has full rank, and there its pseudo-inverse
+    is its inverse; LU inversion costs a quarter of the SVD that np.linalg.pinv runs, and the two differ in the
+    last bits (relative 1e-15). Returns (lambda_pos, lambda_ori, nullspace_matrix).
+    """
+    mass_matrix_inv = np.linalg.inv(mass_matrix)
+    lambda_full = np.linalg.inv(np.dot(np.dot(J_full, mass_matrix_inv), J_full.transpose()))
+    lambda_pos = np.linalg.inv(np.dot(np.dot(J_pos, mass_matrix_inv), J_pos.transpose()))
+    lambda_ori = np.linalg.inv(np.dot(np.dot(J_ori, mass_matrix_inv), J_ori.transpose()))
+    Jbar = np.dot(mass_matrix_inv, J_full.transpose()).dot(lambda_full)
+    nullspace_matrix = np.eye(J_full.shape[-1], J_full.shape[-1]) - np.dot(Jbar, J_full)
+    return lambda_pos, lambda_ori, nullspace_matrix
+
+
+@numba.njit(cache=True)
+def _arm_torques(goal_pos, goal_ori, origin_xpos, origin_xmat, ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel,
+                 J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel, initial_joint, qfrc_bias, arm_dofs, gains,
+                 ctrl_low, ctrl_high):  # fmt: skip
+    """OperationalSpaceController.run_controller (fixed impedance, decoupled, fixed base) and robosuite's clip to
+    the actuators' control range. gains = (kp, kd) rows of 6."""
+    origin_ori = origin_xmat.reshape((3, 3)).copy()
+    desired_world_pos = origin_xpos + np.dot(origin_ori, goal_pos)
+    desired_world_ori = np.dot(origin_ori, goal_ori)
+    ori_error = orientation_error(desired_world_ori, ref_ori_mat)
+    position_error = desired_world_pos - ref_pos
+    # The base is welded to the world (checked at construction): its site velocity is zero.
+    desired_force = position_error * gains[0, 0:3] + (-ref_pos_vel) * gains[1, 0:3]
+    desired_torque = ori_error * gains[0, 3:6] + (-ref_ori_vel) * gains[1, 3:6]
+    lambda_pos, lambda_ori, nullspace_matrix = _opspace_matrices(mass_matrix, J_full, J_pos, J_ori)
+    decoupled_wrench = np.concatenate((np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)))
+    torques = np.dot(J_full.T, decoupled_wrench) + qfrc_bias[arm_dofs]
+    # control_utils.nullspace_torques with its default joint_kp=10
+    joint_kv = np.sqrt(10) * 2
+    pose_torques = np.dot(mass_matrix, (10 * (initial_joint - joint_pos) - joint_kv * joint_vel))
+    torques += np.dot(nullspace_matrix.transpose(), pose_torques)
+    return np.minimum(np.maximum(torques, ctrl_low), ctrl_high)
