@@ -138,8 +138,11 @@ class FastControlStep:
                 self._set_goal(controller_action)
                 # robosuite's first substep runs on the data its set_goal read; right after a reset that is the
                 # data of the controller's construction, before the gripper's joints were placed.
-                reference = (arm.ref_pos, arm.ref_ori_mat, arm.ref_pos_vel, arm.ref_ori_vel, arm.J_pos, arm.J_ori,
-                             arm.J_full, arm.mass_matrix, arm.joint_pos, arm.joint_vel)  # fmt: skip
+                reference = self._reference
+                robosuite_reference = (arm.ref_pos, arm.ref_ori_mat, arm.ref_pos_vel, arm.ref_ori_vel, arm.J_pos,
+                                       arm.J_ori, arm.J_full, arm.mass_matrix, arm.joint_pos, arm.joint_vel)  # fmt: skip
+                for ours, robosuites in zip(reference, robosuite_reference):
+                    ours[...] = robosuites
             else:
                 mujoco.mj_jacSite(model, data, self._jacp, self._jacr, self._eef_site)
                 mujoco.mj_fullM(model, self._full_mass_matrix, data.qM)
