@@ -203,7 +203,7 @@ def record(cfg: RecordConfig) -> Path:
                     demonstrator = demonstrators[demonstrator_id]
                     noise = DemonstratorNoise(demonstrator, controller.CONTROLLER_ACTION_DIM, [cfg.seed, episode_index])
                     env_seed = cfg.seed + episode_index
-                    # Its own stream, so that miss_probability = 0 records the same episodes as before.
+                    # Its own stream: the noise and the env seed are the same whatever miss_probability is.
                     miss_rng = np.random.default_rng([cfg.seed, episode_index, 1])
                     miss = None
                     if miss_rng.uniform() < cfg.miss_probability:

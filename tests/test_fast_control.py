@@ -16,9 +16,9 @@ from dataset_tools.record import record_episode
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.envs.lift import LiftEnv
 
-# Largest difference allowed between the two paths, in the arrays' own units (m, rad, m/s, rad/s). The fast path
-# evaluates the same expressions, but its linear algebra and matrix products are compiled code, not numpy's BLAS
-# calls, so their last bits may differ (docs/environment.md#fast-control-step).
+# Largest difference allowed between the two paths, in the arrays' own units (m, rad, m/s, rad/s). On the machines
+# measured the paths agree bit for bit (docs/environment.md); the margin is for a platform whose numba and numpy
+# link different BLAS builds.
 STATE_TOLERANCE = 1e-8
 HORIZON = 200
 

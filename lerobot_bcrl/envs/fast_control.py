@@ -2,22 +2,23 @@
 
 robosuite runs its whole controller stack at each of the 25 physics substeps of a control step: the composite
 controller, the OSC_POSE arm controller's reference update (four Jacobian evaluations, name look-ups, copies),
-the gripper controller, the robot's bookkeeping and every observable's timer (80 % of a step's time, docs/RESULTS.md
-#env-throughput). `FastControlStep` does the same arithmetic in the same order:
+the gripper controller, the robot's bookkeeping and every observable's timer (80 % of a step's time,
+docs/RESULTS.md#env-throughput). `FastControlStep` computes the same values:
 
 - once per control step, the goal: robosuite's own `set_goal` of the arm and gripper controllers (the delta's
   scaling, the "achieved" goal in the base frame, the gripper's speed-limited command), so what an action means
   is robosuite's by construction;
-- at each substep, the torque law of `OperationalSpaceController.run_controller` (position and orientation error,
-  velocity damping, the decoupled operational-space wrench, gravity compensation, the nullspace posture torque)
-  from MuJoCo's arrays, calling robosuite's own `opspace_matrices`, `orientation_error` and `nullspace_torques`,
-  one `mj_jacSite` per site and one `mj_fullM`; the gripper's actuator command is constant over the control step.
+- at each substep, the arm controller's `update()` and `run_controller()` (position and orientation error,
+  velocity damping, the decoupled operational-space wrench, gravity compensation, the nullspace posture torque,
+  the clip to the actuators' range) in two numba functions on MuJoCo's arrays: one `mj_jacSite` and one `mj_fullM`
+  call, the same expressions in the same order, robosuite's own numba `opspace_matrices` and `orientation_error`
+  on arrays of the same memory layout as robosuite's (the layout selects the compiled code, and so the last bits);
+  the gripper's actuator command is constant over the control step.
 
-The substep loop is MuJoCo's `mj_step1` / control / `mj_step2`, as robosuite's with `lite_physics`. The
-arithmetic is the same operations on the same values, so the trajectories are identical to robosuite's
-(tests/test_fast_control.py asserts it over whole episodes). Controller settings other than the ones the Lift env
-uses (robosuite's default Sawyer OSC_POSE: fixed impedance, delta input in the base frame, no interpolator, no
-limits) are refused rather than approximated.
+The substep loop is MuJoCo's `mj_step1` / control / `mj_step2`, as robosuite's with `lite_physics`. The result is
+robosuite's trajectory bit for bit on this machine (tests/test_fast_control.py compares whole episodes).
+Controller settings other than the ones the Lift env uses (robosuite's default Sawyer OSC_POSE: fixed impedance,
+delta input in the base frame, no interpolator, no limits, a fixed base) are refused rather than approximated.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numba
 import numpy as np
 from robosuite.controllers.parts.arm.osc import OperationalSpaceController
 from robosuite.controllers.parts.gripper.simple_grip import SimpleGripController
-from robosuite.utils.control_utils import orientation_error
+from robosuite.utils.control_utils import opspace_matrices, orientation_error
 
 ARM = "right"
 GRIPPER = "right_gripper"
@@ -98,8 +99,8 @@ class FastControlStep:
         self._reference = (
             np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3),  # ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel
             np.zeros((3, n_arm)), np.zeros((3, n_arm)), np.zeros((6, n_arm)),  # J_pos, J_ori, J_full
-            np.zeros((n_arm, n_arm)), np.zeros(n_arm), np.zeros(n_arm),  # mass_matrix, joint_pos, joint_vel
-        )  # fmt: skip
+            np.zeros((n_arm, n_arm), order="F"), np.zeros(n_arm), np.zeros(n_arm),  # mass_matrix, joint_pos, joint_vel
+        )  # fmt: skip  (robosuite's layouts: its Jacobians C-ordered, its indexed mass matrix Fortran-ordered)
         self._gripper_command: np.ndarray | None = None
 
     @property
@@ -180,23 +181,6 @@ def _arm_reference(eef_xpos, eef_xmat, jacp, jacr, qvel, qpos, full_mass_matrix,
 
 
 @numba.njit(cache=True)
-def _opspace_matrices(mass_matrix, J_full, J_pos, J_ori):
-    """control_utils.opspace_matrices with the operational-space inertias inverted, not pseudo-inverted.
-
-    J M^-1 J^T is symmetric positive definite wherever the Jacobian has full rank, and there its pseudo-inverse
-    is its inverse; LU inversion costs a quarter of the SVD that np.linalg.pinv runs, and the two differ in the
-    last bits (relative 1e-15). Returns (lambda_pos, lambda_ori, nullspace_matrix).
-    """
-    mass_matrix_inv = np.linalg.inv(mass_matrix)
-    lambda_full = np.linalg.inv(np.dot(np.dot(J_full, mass_matrix_inv), J_full.transpose()))
-    lambda_pos = np.linalg.inv(np.dot(np.dot(J_pos, mass_matrix_inv), J_pos.transpose()))
-    lambda_ori = np.linalg.inv(np.dot(np.dot(J_ori, mass_matrix_inv), J_ori.transpose()))
-    Jbar = np.dot(mass_matrix_inv, J_full.transpose()).dot(lambda_full)
-    nullspace_matrix = np.eye(J_full.shape[-1], J_full.shape[-1]) - np.dot(Jbar, J_full)
-    return lambda_pos, lambda_ori, nullspace_matrix
-
-
-@numba.njit(cache=True)
 def _arm_torques(goal_pos, goal_ori, origin_xpos, origin_xmat, ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel,
                  J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel, initial_joint, qfrc_bias, arm_dofs, gains,
                  ctrl_low, ctrl_high):  # fmt: skip
@@ -210,7 +194,7 @@ def _arm_torques(goal_pos, goal_ori, origin_xpos, origin_xmat, ref_pos, ref_ori_
     # The base is welded to the world (checked at construction): its site velocity is zero.
     desired_force = position_error * gains[0, 0:3] + (-ref_pos_vel) * gains[1, 0:3]
     desired_torque = ori_error * gains[0, 3:6] + (-ref_ori_vel) * gains[1, 3:6]
-    lambda_pos, lambda_ori, nullspace_matrix = _opspace_matrices(mass_matrix, J_full, J_pos, J_ori)
+    _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, J_full, J_pos, J_ori)
     decoupled_wrench = np.concatenate((np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)))
     torques = np.dot(J_full.T, decoupled_wrench) + qfrc_bias[arm_dofs]
     # control_utils.nullspace_torques with its default joint_kp=10
