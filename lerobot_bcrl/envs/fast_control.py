@@ -86,8 +86,8 @@ class FastControlStep:
         self._arm_qpos = np.array(arm.qpos_index, dtype=np.int64)
         self._arm_dofs = np.array(arm.qvel_index, dtype=np.int64)
         actuators = robot._ref_actuators_indexes_dict
-        self._arm_actuators = np.array(actuators[ARM])
-        self._gripper_actuators = np.array(actuators[GRIPPER])
+        self._arm_actuators = np.array(actuators[ARM], dtype=np.int64)
+        self._gripper_actuators = np.array(actuators[GRIPPER], dtype=np.int64)
         ctrlrange = self._model.actuator_ctrlrange
         self._arm_ctrl_low, self._arm_ctrl_high = ctrlrange[self._arm_actuators, 0], ctrlrange[self._arm_actuators, 1]
         self._gripper_ctrl_low = ctrlrange[self._gripper_actuators, 0]
@@ -120,6 +120,7 @@ class FastControlStep:
         robot, arm, gripper = self._robot, self._arm, self._gripper
         robot.composite_controller.update_state()
         arm.set_goal(controller_action[:6])
+        gripper.new_update = False  # its update() reads joint data its goal does not use
         gripper.set_goal(robot.gripper[ARM].format_action(controller_action[6:7]))
         arm.new_update = gripper.new_update = True  # as their run_controller leaves them: refresh at the next goal
         self._goal_pos = arm.goal_pos
@@ -129,33 +130,54 @@ class FastControlStep:
         weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
         self._gripper_command = np.clip(bias + weight * np.array(gripper.goal_qvel), self._gripper_ctrl_low, self._gripper_ctrl_high)
 
+    def _load_arm_reference(self) -> None:
+        """Write this substep's reference data into the arm controller, as its update() would, and mark it fresh."""
+        arm = self._arm
+        ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel, J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel = self._reference
+        arm.ref_pos[:] = ref_pos
+        arm.ref_ori_mat[:, :] = ref_ori_mat
+        arm.ref_pos_vel[:] = ref_pos_vel
+        arm.ref_ori_vel[:] = ref_ori_vel
+        arm.J_pos[:, :] = J_pos
+        arm.J_ori[:, :] = J_ori
+        arm.J_full[:, :] = J_full
+        arm.mass_matrix = mass_matrix.copy(order="F")
+        arm.joint_pos, arm.joint_vel = joint_pos.copy(), joint_vel.copy()
+        arm.new_update = False
+
     def step(self, controller_action: np.ndarray) -> None:
         """robosuite's `env.step` physics for one 7-D controller action; advances the env's step counter and clock."""
         env, model, data, arm = self._env, self._model, self._data, self._arm
         env.timestep += 1
         for substep in range(self.n_substeps):
             mujoco.mj_step1(model, data)
-            if substep == 0:
-                self._set_goal(controller_action)
-                # robosuite's first substep runs on the data its set_goal read; right after a reset that is the
-                # data of the controller's construction, before the gripper's joints were placed.
-                reference = self._reference
+            mujoco.mj_jacSite(model, data, self._jacp, self._jacr, self._eef_site)
+            mujoco.mj_fullM(model, self._full_mass_matrix, data.qM)
+            eef_and_jacobians = (data.site_xpos[self._eef_site], data.site_xmat[self._eef_site], self._jacp, self._jacr)
+            joints = (data.qvel, data.qpos, self._full_mass_matrix, self._arm_qpos, self._arm_dofs)
+            base = (data.site_xpos[self._base_site], data.site_xmat[self._base_site])
+            if substep > 0:  # the common case in one call: reference data, torques, actuator commands
+                _control_substep(
+                    *eef_and_jacobians, *joints, *self._reference, self._goal_pos, self._goal_ori, *base,
+                    arm.initial_joint, data.qfrc_bias, self._gains, self._arm_ctrl_low, self._arm_ctrl_high,
+                    data.ctrl, self._arm_actuators, self._gripper_actuators, self._gripper_command,
+                )
+                mujoco.mj_step2(model, data)
+                continue
+            if arm.new_update:
+                _arm_reference(*eef_and_jacobians, *joints, *self._reference)
+                self._load_arm_reference()  # what the arm controller's update() in set_goal would compute
+            else:
+                # Right after a reset robosuite's set_goal and first substep read the data of the controller's
+                # construction (before the gripper's joints were placed): use the arm controller's.
                 robosuite_reference = (arm.ref_pos, arm.ref_ori_mat, arm.ref_pos_vel, arm.ref_ori_vel, arm.J_pos,
                                        arm.J_ori, arm.J_full, arm.mass_matrix, arm.joint_pos, arm.joint_vel)  # fmt: skip
-                for ours, robosuites in zip(reference, robosuite_reference):
+                for ours, robosuites in zip(self._reference, robosuite_reference):
                     ours[...] = robosuites
-            else:
-                mujoco.mj_jacSite(model, data, self._jacp, self._jacr, self._eef_site)
-                mujoco.mj_fullM(model, self._full_mass_matrix, data.qM)
-                reference = self._reference
-                _arm_reference(
-                    data.site_xpos[self._eef_site], data.site_xmat[self._eef_site], self._jacp, self._jacr, data.qvel,
-                    data.qpos, self._full_mass_matrix, self._arm_qpos, self._arm_dofs, *reference,
-                )
+            self._set_goal(controller_action)
             data.ctrl[self._arm_actuators] = _arm_torques(
-                self._goal_pos, self._goal_ori, data.site_xpos[self._base_site], data.site_xmat[self._base_site],
-                *reference, arm.initial_joint, data.qfrc_bias, self._arm_dofs, self._gains,
-                self._arm_ctrl_low, self._arm_ctrl_high,
+                self._goal_pos, self._goal_ori, *base, *self._reference, arm.initial_joint, data.qfrc_bias,
+                self._arm_dofs, self._gains, self._arm_ctrl_low, self._arm_ctrl_high,
             )
             data.ctrl[self._gripper_actuators] = self._gripper_command
             mujoco.mj_step2(model, data)
@@ -178,6 +200,23 @@ def _arm_reference(eef_xpos, eef_xmat, jacp, jacr, qvel, qpos, full_mass_matrix,
             J_ori[i, j] = J_full[3 + i, j] = jacr[i, arm_dofs[j]]
         for i in range(arm_dofs.shape[0]):
             mass_matrix[i, j] = full_mass_matrix[arm_dofs[i], arm_dofs[j]]
+
+
+@numba.njit(cache=True)
+def _control_substep(eef_xpos, eef_xmat, jacp, jacr, qvel, qpos, full_mass_matrix, arm_qpos, arm_dofs,
+                     ref_pos, ref_ori_mat, ref_pos_vel, ref_ori_vel, J_pos, J_ori, J_full, mass_matrix, joint_pos,
+                     joint_vel, goal_pos, goal_ori, origin_xpos, origin_xmat, initial_joint, qfrc_bias, gains, ctrl_low,
+                     ctrl_high, ctrl, arm_actuators, gripper_actuators, gripper_command):  # fmt: skip
+    """One substep after the first: _arm_reference, _arm_torques and the actuator commands, in one call."""
+    _arm_reference(eef_xpos, eef_xmat, jacp, jacr, qvel, qpos, full_mass_matrix, arm_qpos, arm_dofs, ref_pos,
+                   ref_ori_mat, ref_pos_vel, ref_ori_vel, J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel)  # fmt: skip
+    torques = _arm_torques(goal_pos, goal_ori, origin_xpos, origin_xmat, ref_pos, ref_ori_mat, ref_pos_vel,
+                           ref_ori_vel, J_pos, J_ori, J_full, mass_matrix, joint_pos, joint_vel, initial_joint,
+                           qfrc_bias, arm_dofs, gains, ctrl_low, ctrl_high)  # fmt: skip
+    for i in range(arm_actuators.shape[0]):
+        ctrl[arm_actuators[i]] = torques[i]
+    for i in range(gripper_actuators.shape[0]):
+        ctrl[gripper_actuators[i]] = gripper_command[i]
 
 
 @numba.njit(cache=True)
