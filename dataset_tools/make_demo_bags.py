@@ -72,7 +72,7 @@ def simulate_demo(cfg: MakeDemoBagsConfig, seed: int) -> SimulatedDemo:
     from lerobot_bcrl.features import CAMERA_NAME
 
     rng = np.random.default_rng([seed, 1])
-    env = LiftEnv(obs_type="agent_pos")
+    env = LiftEnv(obs_type="agent_pos", sim_step="robosuite")  # robosuite's step calls sim.step2, hooked below
     sim = env.sim_env.sim
     model, data = sim.model._model, sim.data._data
     sawyer = MujocoSawyer(model)

@@ -74,7 +74,7 @@ class RecordConfig:
     episode_length: int = 200  # the paper's horizon
     cheap_render: bool = True  # simplified meshes, no shadows/reflections (docs/environment.md)
     dense_reward: bool = False  # store robosuite's shaped reward instead of the sparse one
-    sim_step: str = "fast"  # or "robosuite": robosuite's own env.step (the same frames within 1e-8)
+    sim_step: str = "fast"  # or "robosuite": robosuite's own env.step (the same frames: docs/environment.md)
     overwrite: bool = False  # replace an existing dataset at root
     device: str = "cpu"  # for a policy expert
 
