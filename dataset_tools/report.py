@@ -252,7 +252,7 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
         "return_success.png": [("train_return", "train return"), ("eval_return", "eval return (deterministic)"),
                                ("train_success", "train success"), ("eval_success", "eval success")],
         "bc_terms.png": [("bc_loss", "BC loss"), ("bc_cosine", "cosine distance of delta_pos"),
-                         ("bc_gripper_ce", "gripper CE"), ("bc_quat", "quaternion distance")],
+                         ("bc_gripper_ce", "gripper CE"), ("bc_rot_l1", "rotation L1")],
         "theta_ppo.png": [("theta", "theta_t"), ("approx_kl", "approx KL"), ("clipfrac", "clip fraction"),
                           ("explained_variance", "explained variance"),
                           ("bc_grad_share", "BC term's share of the policy gradient")],

@@ -40,7 +40,7 @@ def test_experiments_script_runs_the_recipe_by_default(tmp_path):
     assert recorded["miss_height_range_m"] == [0.015, 0.045] and recorded["miss_max_aside_m"] == 0.035
 
     bc = json.loads((out / "bc" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
-    assert bc["quat_weight"] == 1000.0 and bc["critic_hidden_dims"] == [256, 256]
+    assert bc["rotation_weight"] == 1.0 and bc["critic_hidden_dims"] == [256, 256]
     assert bc["input_features"]["observation.environment_state"]["shape"] == [13]  # with the cube-yaw features
 
     bcrl = json.loads((out / "bcrl" / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG_NAME).read_text())

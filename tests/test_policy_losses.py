@@ -1,33 +1,28 @@
-"""BC loss terms against hand-computed values, and the spatial-softmax keypoint on a synthetic image."""
+"""BC loss terms against hand-computed values, the rotation-vector conversions against the numpy geometry, and the spatial-softmax keypoint on a synthetic image."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from lerobot_bcrl import geometry
 from lerobot_bcrl.policies.bcrl import losses
-from lerobot_bcrl.policies.bcrl.modeling_bcrl import SpatialSoftmax
+from lerobot_bcrl.policies.bcrl.modeling_bcrl import SpatialSoftmax, quat_from_rotvec, rotvec_from_quat
 
 
-def test_quaternion_distance_is_zero_for_both_covers():
-    q = torch.nn.functional.normalize(torch.tensor([[0.1, -0.2, 0.3, 0.9], [0.5, 0.5, -0.5, 0.5]]), dim=-1)
-    # float32 rounding of 1 - |q . q| on unit quaternions: a few 1e-7; -q without the |.| would give 2
-    assert losses.quaternion_distance(q, q).item() == pytest.approx(0.0, abs=1e-5)
-    assert losses.quaternion_distance(-q, q).item() == pytest.approx(0.0, abs=1e-5)
-
-
-def test_quaternion_distance_of_a_half_turn_is_one_minus_cos_quarter_turn():
-    identity = torch.tensor([[0.0, 0.0, 0.0, 1.0]])
-    about_z = torch.tensor([[0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]])  # 90 degrees
-    assert losses.quaternion_distance(about_z, identity).item() == pytest.approx(1 - math.cos(math.pi / 4))
-
-
-def test_quaternion_sign_penalty_only_on_negative_w():
-    quats = torch.tensor([[0.0, 0.0, 0.6, 0.8], [0.0, 0.0, -0.6, -0.8]])
-    assert losses.quaternion_sign_penalty(quats[:1]).item() == 0.0
-    assert losses.quaternion_sign_penalty(quats).item() == pytest.approx(0.8 / 2)
+def test_rotation_vectors_of_quaternions_match_the_numpy_geometry_and_invert():
+    rng = np.random.default_rng(0)
+    rotvecs = np.concatenate([rng.normal(size=(200, 3)) * 0.05, rng.normal(size=(20, 3)), np.zeros((1, 3)),
+                              [[0.0, 0.0, 3.1]], [[1e-9, 0.0, 0.0]]])  # small, large, zero, near a half turn, tiny
+    quats = geometry.rotvec_to_quat(rotvecs)
+    quats[::2] *= -1  # either cover gives the same rotation vector
+    ours = rotvec_from_quat(torch.tensor(quats, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(ours, geometry.quat_to_rotvec(quats), rtol=1e-9, atol=1e-12)
+    back = quat_from_rotvec(torch.tensor(rotvecs, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(back, geometry.quat_canonical(geometry.rotvec_to_quat(rotvecs)), rtol=1e-9, atol=1e-12)
 
 
 def test_cosine_distance_of_opposite_aligned_and_orthogonal_directions():

@@ -13,8 +13,9 @@ from policy_fixtures import (  # noqa: F401  (fixtures)
     whole_dataset_batch,
 )
 
+from lerobot_bcrl.geometry import MAX_DELTA_ROT_RAD
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
-from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy
+from lerobot_bcrl.policies.bcrl.modeling_bcrl import BCRLPolicy, rotvec_from_quat
 from lerobot_bcrl.rl.agent import BCRLAgent
 
 
@@ -24,6 +25,7 @@ def assert_valid_actions(actions: torch.Tensor):
     assert (actions[:, 6] >= 0).all()
     assert set(actions[:, 7].tolist()) <= {-1.0, 1.0}
     assert (actions[:, :3].norm(dim=-1) <= 0.05 + 1e-6).all()
+    assert (2 * torch.atan2(actions[:, 3:6].norm(dim=-1), actions[:, 6]) <= MAX_DELTA_ROT_RAD + 1e-6).all()
 
 
 @pytest.mark.parametrize("fixture_name", ["lowdim_dataset_root", "image_dataset_root"])
@@ -41,7 +43,7 @@ def test_select_action_is_a_valid_deterministic_action(fixture_name, request):
 def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(lowdim_dataset_root):
     dataset = load_dataset(lowdim_dataset_root)
     policy, preprocessor, _ = make_bcrl_policy(dataset)
-    policy.log_std.data.fill_(0.0)  # wide enough that some samples leave the clamp and the qw >= 0 cover
+    policy.log_std.data.fill_(0.0)  # wide enough that some samples leave the clamps
     agent = BCRLAgent(policy, preprocessor)
     batch = preprocessor(whole_dataset_batch(dataset))
     torch.manual_seed(0)
@@ -49,7 +51,13 @@ def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(low
         raw_actions, log_prob, value = agent.sample(batch)
     env_actions = agent.to_env_action(raw_actions)
     assert_valid_actions(env_actions)
-    assert not torch.allclose(env_actions[:, :7], raw_actions[:, :7])  # the projection did something
+    scaled = torch.cat([env_actions[:, :3] / policy.config.delta_pos_scale_m,
+                        rotvec_from_quat(env_actions[:, 3:7]) / policy.config.delta_rot_scale_rad], dim=-1)
+    assert not torch.allclose(scaled, raw_actions[:, :6], atol=1e-4)  # the clamps did something
+    inside = (raw_actions[:, :3].norm(dim=-1) * policy.config.delta_pos_scale_m <= policy.config.max_delta_pos_m) & (
+        raw_actions[:, 3:6].norm(dim=-1) * policy.config.delta_rot_scale_rad <= MAX_DELTA_ROT_RAD)
+    assert inside.any()  # and where they did nothing, the env gets the sample itself
+    torch.testing.assert_close(scaled[inside], raw_actions[inside, :6], rtol=1e-4, atol=1e-5)
     new_log_prob, entropy, new_value = agent.evaluate(batch, raw_actions)
     assert log_prob.shape == entropy.shape == value.shape == (len(dataset),)
     torch.testing.assert_close(new_log_prob, log_prob, rtol=1e-5, atol=1e-5 * float(log_prob.abs().max()))
@@ -59,8 +67,8 @@ def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(low
         continuous, gripper = policy.action_distributions(policy.model(batch))
         std = policy.log_std.exp()
     mean = continuous.loc
-    by_hand = (-0.5 * ((raw_actions[:, :7] - mean) / std) ** 2 - std.log() - 0.5 * torch.log(torch.tensor(2 * torch.pi))).sum(-1)
-    by_hand = by_hand + gripper.logits.log_softmax(-1).gather(1, raw_actions[:, 7:].long()).squeeze(1)
+    by_hand = (-0.5 * ((raw_actions[:, :6] - mean) / std) ** 2 - std.log() - 0.5 * torch.log(torch.tensor(2 * torch.pi))).sum(-1)
+    by_hand = by_hand + gripper.logits.log_softmax(-1).gather(1, raw_actions[:, 6:].long()).squeeze(1)
     torch.testing.assert_close(new_log_prob.detach(), by_hand, rtol=1e-4, atol=1e-4 * float(by_hand.abs().max()))
     # gradients reach the learned log-std and the value head
     (-(new_log_prob.mean()) - entropy.mean() + new_value.pow(2).mean()).backward()

@@ -42,7 +42,7 @@ def finetune_args(dataset_root: Path, output_dir: Path, total_env_steps: int, *e
 @pytest.mark.slow
 def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, tmp_path):
     extra = ["--policy.type=bcrl", "--policy.push_to_hub=false", "--ppo.learning_rate=1e-4", "--ppo.reset_log_std=-1.0",
-             "--ppo.reset_log_std_rotation=-3.0", "--schedule.type=three_phase", "--schedule.alpha=4",
+             "--schedule.type=three_phase", "--schedule.alpha=4",
              "--schedule.beta=10", "--schedule.phi=40"]  # fmt: skip
     # A budget it cannot reach before the kill, whatever the machine's speed; the resumed run is given a target
     # two iterations past wherever the kill landed.

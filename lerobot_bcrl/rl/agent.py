@@ -89,8 +89,8 @@ class BCRLAgent:
 
         return self.preprocessor(preprocess_observation(unflatten_observation(raw_obs)))
 
-    # PPO learns on the raw sample [delta_pos / scale, quat (4), gripper class]: its log-prob is exact. The env
-    # gets its projection (clamped |delta_pos|, unit quaternion, -1/+1 gripper) from `to_env_action`; taking
+    # PPO learns on the raw sample [delta_pos / scale, delta_rotvec / scale, gripper class]: its log-prob is exact.
+    # The env gets its projection (clamped deltas, unit quaternion, -1/+1 gripper) from `to_env_action`; taking
     # log-probs at the projected point instead makes the ratio explode wherever the clamp is active.
     def sample(self, obs):
         outputs = self.policy.model(obs)
@@ -107,11 +107,13 @@ class BCRLAgent:
 
     @staticmethod
     def _log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions):
-        log_prob = continuous_dist.log_prob(raw_actions[:, :7]).sum(-1) + gripper_dist.log_prob(raw_actions[:, 7].long())
+        n = continuous_dist.mean.shape[-1]  # the continuous dims, then the gripper class
+        log_prob = continuous_dist.log_prob(raw_actions[:, :n]).sum(-1) + gripper_dist.log_prob(raw_actions[:, n].long())
         return log_prob, continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
 
     def to_env_action(self, raw_actions):
-        return self.policy.to_env_action(raw_actions[:, :7], raw_actions[:, 7].long())
+        n = self.policy.log_std.shape[0]
+        return self.policy.to_env_action(raw_actions[:, :n], raw_actions[:, n].long())
 
     def mean_action(self, obs):
         return self.policy.select_action(obs)

@@ -32,12 +32,10 @@ def build_policy(policy_cfg, dataset):
 
 
 @torch.no_grad()
-def reset_exploration_std(policy, position_log_std: float, rotation_log_std: float) -> None:
-    """PPO's starting log-std over [delta_pos / scale (3), quaternion (4)]. BC never trains it; the demonstrations
-    barely rotate, and quaternion noise of the position's size turns the wrist ~15 degrees a step (clamped to
-    pi/40), which the BC policy never saw, hence a smaller rotation std."""
-    policy.log_std[:3] = position_log_std
-    policy.log_std[3:] = rotation_log_std
+def reset_exploration_std(policy, log_std: float) -> None:
+    """PPO's starting log-std over [delta_pos / scale (3), delta_rotvec / scale (3)]: BC never trains it. Both
+    targets are scaled to the same size, so one value serves both."""
+    policy.log_std.fill_(log_std)
 
 
 def start_workers(cfg, policy, preprocessor, postprocessor, seed: int) -> RolloutWorkers:

@@ -17,7 +17,7 @@ LOG_COLUMNS = [
     "train_return", "train_success", "train_episodes",
     "loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
     "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",
-    "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_quat", "bc_quat_sign",
+    "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_rot_l1", "bc_rot_l2",
     "bc_aux_eef_mse", "bc_aux_grasp_mse", "gripper_accuracy",
     "eval_return", "eval_return_ci95", "eval_success", "eval_steps_to_lift", "eval_episodes",
 ]

@@ -44,9 +44,9 @@ class PPOConfig:
     max_grad_norm: float = 0.5
     normalize_advantages: bool = True
     normalize_rewards: bool = True  # divide rewards by a running std of the discounted return (rl/normalization.py)
-    # The exploration log-std set before the first update (build.reset_exploration_std): delta_pos / scale, quaternion.
+    # The exploration log-std set before the first update (build.reset_exploration_std), on [delta_pos / scale,
+    # delta_rotvec / scale].
     reset_log_std: float = -2.0
-    reset_log_std_rotation: float = -5.0
     # How theta_t weighs the two terms. "loss": the paper's `theta * L_BC + (1 - theta) * L_PPO`. "gradient_share":
     # L_BC is first rescaled per minibatch by ||grad L_PPO|| / ||grad L_BC|| (policy term, detached), so theta_t is
     # the BC term's share of the policy gradient (PPO's was 2-9x the BC loss's here: docs/RESULTS.md).
@@ -234,7 +234,7 @@ def finetune(cfg) -> dict:
             reward_scaler.load_state_dict(state["reward_scaler"])
         cfg.policy.pretrained_path = initial_policy_path
     elif cfg.total_env_steps > 0:
-        reset_exploration_std(policy, cfg.ppo.reset_log_std, cfg.ppo.reset_log_std_rotation)
+        reset_exploration_std(policy, cfg.ppo.reset_log_std)
     # Fresh worker seeds after a resume, so a resumed run does not replay the episodes it has seen.
     workers = start_workers(cfg, policy, preprocessor, postprocessor, cfg.seed + 104_729 * schedule.ppo_iteration)
     demo_batches = (DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule.ppo_iteration, preprocessor)

@@ -12,7 +12,7 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
 from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY
-from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M
+from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M, MAX_DELTA_ROT_RAD
 
 OBSERVATION_MODES = ("auto", "pixels", "low_dim")
 
@@ -40,14 +40,18 @@ class BCRLConfig(PreTrainedConfig):
     # although the action itself is left unnormalized (ACTION uses IDENTITY, see normalization_mapping).
     delta_pos_scale_m: float = MAX_DELTA_POS_M
     max_delta_pos_m: float = MAX_DELTA_POS_M  # select_action clamps |delta_pos| to this (paper's range)
+    # The rotation head predicts the delta's rotation vector / delta_rot_scale_rad (O(1) like the position's);
+    # the action itself stays a unit quaternion, clamped to the format's pi/40 (geometry.MAX_DELTA_ROT_RAD).
+    delta_rot_scale_rad: float = MAX_DELTA_ROT_RAD
 
     # -- BC loss weights (method.md section 3) ----------------------------------------------------------
     l1_weight: float = 1.0  # L1 on delta_pos / delta_pos_scale_m
     l2_weight: float = 1.0  # L2 (MSE) on delta_pos / delta_pos_scale_m
     cosine_weight: float = 1.0  # 1 - cos(delta_pos_hat, delta_pos): direction, in [0, 2]
     gripper_weight: float = 1.0  # class-weighted cross entropy on the gripper class
-    quat_weight: float = 1.0  # 1 - |q_hat . q|: zero for either cover of the target rotation
-    quat_sign_weight: float = 0.1  # relu(-q_hat_w): keeps the prediction on the qw >= 0 cover
+    # L1 + L2 on the rotation vector / delta_rot_scale_rad, each weighted by this: the rotation target is scaled
+    # like the position's, so both have comparable size with weights near 1 (docs/RESULTS.md#rotation-target).
+    rotation_weight: float = 1.0
     aux_weight: float = 0.1  # EEF-position MSE + grasp-position MSE (masked by aux.grasp_valid)
     # Gripper class weights come from the dataset's closed fraction; clip it so that a dataset that
     # (almost) never closes the gripper cannot produce an infinite weight.
@@ -63,8 +67,8 @@ class BCRLConfig(PreTrainedConfig):
     optimizer_grad_clip_norm: float = 10.0
 
     # Images in [0,1] and states are standardized by the preprocessor. ACTION is IDENTITY: the unit
-    # quaternion and the gripper class must leave the postprocessor exact; delta_pos is scaled inside
-    # the model instead (delta_pos_scale_m).
+    # quaternion and the gripper class must leave the postprocessor exact; delta_pos and the rotation are
+    # scaled inside the model instead (delta_pos_scale_m, delta_rot_scale_rad).
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
             "VISUAL": NormalizationMode.MEAN_STD,
@@ -80,6 +84,8 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {self.observation_mode!r}")
         if self.delta_pos_scale_m <= 0:
             raise ValueError(f"delta_pos_scale_m must be > 0, got {self.delta_pos_scale_m}")
+        if self.delta_rot_scale_rad <= 0:
+            raise ValueError(f"delta_rot_scale_rad must be > 0, got {self.delta_rot_scale_rad}")
 
     @property
     def uses_images(self) -> bool:

@@ -28,16 +28,6 @@ def gripper_cross_entropy(gripper_logits: Tensor, gripper_class: Tensor, class_w
     return F.cross_entropy(gripper_logits, gripper_class, weight=class_weights)
 
 
-def quaternion_distance(pred_quat: Tensor, target_quat: Tensor) -> Tensor:
-    """1 - |q_hat . q| for unit quaternions: zero for q and for -q (the double cover), 1 at 180 degrees."""
-    return (1.0 - (pred_quat * target_quat).sum(dim=-1).abs()).mean()
-
-
-def quaternion_sign_penalty(pred_quat_xyzw: Tensor) -> Tensor:
-    """relu(-qw): the targets are all on the qw >= 0 cover; this keeps predictions from flipping to -q."""
-    return F.relu(-pred_quat_xyzw[..., 3]).mean()
-
-
 def masked_mse(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
     """MSE over the rows where `mask` is True (all rows if None); 0 when no row is valid."""
     squared_error = (pred - target).pow(2).mean(dim=-1)

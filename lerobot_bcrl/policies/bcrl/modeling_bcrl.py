@@ -24,13 +24,13 @@ from lerobot_bcrl.features import (
     ENV_STATE_KEY,
     STATE_KEY,
 )
-from lerobot_bcrl.geometry import GRIPPER_CLOSED, GRIPPER_OPEN
+from lerobot_bcrl.geometry import GRIPPER_CLOSED, GRIPPER_OPEN, MAX_DELTA_ROT_RAD
 from lerobot_bcrl import rerun_log
 from lerobot_bcrl.policies.bcrl import losses
 from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
 GRIPPER_OPEN_CLASS, GRIPPER_CLOSED_CLASS = 0, 1
-CONTINUOUS_DIM = 7  # [delta_pos / scale (3), delta_quat_xyzw (4)]: what the Gaussian is over
+CONTINUOUS_DIM = 6  # [delta_pos / scale (3), delta_rotvec / scale (3)]: what the Gaussian is over
 
 
 class SpatialSoftmax(nn.Module):
@@ -90,7 +90,7 @@ def mlp(in_dim: int, hidden_dims: tuple[int, ...], out_dim: int | None = None) -
 @dataclass
 class BCRLOutputs:
     delta_pos_scaled: Tensor  # (B, 3) delta position / delta_pos_scale_m
-    delta_quat_xyzw: Tensor  # (B, 4) unit quaternion (not yet put on the qw >= 0 cover)
+    delta_rot_scaled: Tensor  # (B, 3) rotation vector / delta_rot_scale_rad
     gripper_logits: Tensor  # (B, 2) [open, closed]
     value: Tensor  # (B,) state value for PPO
     eef_pos_normalized: Tensor  # (B, 3) aux head, standardized by the aux.eef_pos stats
@@ -112,7 +112,7 @@ class BCRLModel(nn.Module):
         self.trunk = mlp(keypoint_dim + state_dim, config.trunk_hidden_dims)
         trunk_dim = config.trunk_hidden_dims[-1] if config.trunk_hidden_dims else keypoint_dim + state_dim
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
-        self.delta_quat_head = nn.Linear(trunk_dim, 4)
+        self.delta_rot_head = nn.Linear(trunk_dim, 3)
         self.gripper_head = nn.Linear(trunk_dim, 2)
         if config.critic_hidden_dims:  # a separate critic (see BCRLConfig.critic_hidden_dims)
             self.value_head = None
@@ -122,8 +122,6 @@ class BCRLModel(nn.Module):
             self.critic = None
         self.eef_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
         self.grasp_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
-        # Start every rotation prediction near the identity, far from the ill-defined zero quaternion.
-        self.register_buffer("quat_offset", torch.tensor([0.0, 0.0, 0.0, 1.0]), persistent=False)
 
     def keypoints(self, batch: dict[str, Tensor]) -> Tensor:
         if self.keypoint_encoder is not None:
@@ -137,10 +135,9 @@ class BCRLModel(nn.Module):
             value = self.value_head(trunk)
         else:  # keypoints detached: the value loss does not reach the CNN either
             value = self.critic(torch.cat([keypoints.detach(), batch[STATE_KEY]], dim=-1))
-        delta_quat = F.normalize(self.delta_quat_head(trunk) + self.quat_offset, dim=-1)
         return BCRLOutputs(
             delta_pos_scaled=self.delta_pos_head(trunk),
-            delta_quat_xyzw=delta_quat,
+            delta_rot_scaled=self.delta_rot_head(trunk),
             gripper_logits=self.gripper_head(trunk),
             value=value.squeeze(-1),
             eef_pos_normalized=self.eef_pos_head(keypoints),
@@ -163,7 +160,7 @@ class BCRLPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         self.model = BCRLModel(config)
-        # Log-std of PPO's Gaussian over [delta_pos / scale, quat]; BC never trains it, bcrl-finetune sets it
+        # Log-std of PPO's Gaussian over [delta_pos / scale, delta_rotvec / scale]; BC never trains it, bcrl-finetune sets it
         # (PPOConfig.reset_log_std*) before the first update.
         self.log_std = nn.Parameter(torch.zeros(CONTINUOUS_DIM))
         # Buffers, saved in model.safetensors: a checkpoint keeps the statistics of the data it was trained on.
@@ -202,28 +199,24 @@ class BCRLPolicy(PreTrainedPolicy):
         """The 8-D action (B, 8) of the mean: delta position and rotation as predicted, the likelier gripper class."""
         self.eval()
         outputs = self.model(batch)
-        continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_quat_xyzw], dim=-1)
+        continuous = torch.cat([outputs.delta_pos_scaled, outputs.delta_rot_scaled], dim=-1)
         actions = self.to_env_action(continuous, outputs.gripper_logits.argmax(dim=-1))
         rerun_log.log_policy_step(actions, outputs.value)  # no-op unless our envs log rollouts to rerun
         return actions
 
     # -- PPO's action distribution (rl/agent.py samples and scores it) -----------------------------------
     def action_distributions(self, outputs: BCRLOutputs) -> tuple[Normal, Categorical]:
-        """Gaussian over [delta_pos / scale, unit quat] with the learned log-std, categorical over the gripper."""
-        mean = torch.cat([outputs.delta_pos_scaled, self._canonical(outputs.delta_quat_xyzw)], dim=-1)
+        """Gaussian over [delta_pos / scale, delta_rotvec / scale] with the learned log-std, categorical over the gripper."""
+        mean = torch.cat([outputs.delta_pos_scaled, outputs.delta_rot_scaled], dim=-1)
         return Normal(mean, self.log_std.exp().expand_as(mean)), Categorical(logits=outputs.gripper_logits)
 
     # -- actions ----------------------------------------------------------------------------------------
-    @staticmethod
-    def _canonical(quat_xyzw: Tensor) -> Tensor:
-        return torch.where(quat_xyzw[..., 3:4] < 0, -quat_xyzw, quat_xyzw)
-
     def to_env_action(self, continuous: Tensor, gripper_class: Tensor) -> Tensor:
-        """[delta_pos (m, clamped), unit quat with qw >= 0, gripper -1/+1] from model-space values."""
-        delta_pos_m = continuous[:, :3] * self.config.delta_pos_scale_m
-        norm = delta_pos_m.norm(dim=-1, keepdim=True)
-        delta_pos_m = delta_pos_m * (self.config.max_delta_pos_m / norm.clamp_min(1e-12)).clamp(max=1.0)
-        delta_quat = self._canonical(F.normalize(continuous[:, 3:7], dim=-1))
+        """[delta_pos (m), unit quat with qw >= 0, gripper -1/+1] from model-space values, both deltas clamped
+        to the action format's limits."""
+        delta_pos_m = _clamp_norm(continuous[:, :3] * self.config.delta_pos_scale_m, self.config.max_delta_pos_m)
+        delta_rotvec_rad = _clamp_norm(continuous[:, 3:6] * self.config.delta_rot_scale_rad, MAX_DELTA_ROT_RAD)
+        delta_quat = quat_from_rotvec(delta_rotvec_rad)
         gripper = torch.where(gripper_class == GRIPPER_CLOSED_CLASS, GRIPPER_CLOSED, GRIPPER_OPEN)
         return torch.cat([delta_pos_m, delta_quat, gripper[:, None].to(delta_pos_m.dtype)], dim=-1)
 
@@ -242,6 +235,7 @@ class BCRLPolicy(PreTrainedPolicy):
                 outputs, batch = _select_rows(outputs, batch, keep)
         action = batch[ACTION_KEY]
         target_pos_scaled = action[:, :3] / cfg.delta_pos_scale_m
+        target_rot_scaled = rotvec_from_quat(action[:, 3:7]) / cfg.delta_rot_scale_rad
         target_gripper_class = (action[:, 7] > 0).long()
         terms = {
             "l1": losses.l1_loss(outputs.delta_pos_scaled, target_pos_scaled),
@@ -250,16 +244,16 @@ class BCRLPolicy(PreTrainedPolicy):
             "gripper_ce": losses.gripper_cross_entropy(
                 outputs.gripper_logits, target_gripper_class, self.gripper_class_weights
             ),
-            "quat": losses.quaternion_distance(outputs.delta_quat_xyzw, action[:, 3:7]),
-            "quat_sign": losses.quaternion_sign_penalty(outputs.delta_quat_xyzw),
+            "rot_l1": losses.l1_loss(outputs.delta_rot_scaled, target_rot_scaled),
+            "rot_l2": losses.l2_loss(outputs.delta_rot_scaled, target_rot_scaled),
         }
         weights = {
             "l1": cfg.l1_weight,
             "l2": cfg.l2_weight,
             "cosine": cfg.cosine_weight,
             "gripper_ce": cfg.gripper_weight,
-            "quat": cfg.quat_weight,
-            "quat_sign": cfg.quat_sign_weight,
+            "rot_l1": cfg.rotation_weight,
+            "rot_l2": cfg.rotation_weight,
         }
         if cfg.aux_weight > 0 and (AUX_EEF_POS_KEY in batch or cfg.require_aux_targets):
             terms.update(self._aux_terms(outputs, batch))
@@ -288,6 +282,29 @@ class BCRLPolicy(PreTrainedPolicy):
                 outputs.grasp_pos_normalized, grasp_target, batch[AUX_GRASP_VALID_KEY].bool()
             ),
         }
+
+
+def _clamp_norm(vectors: Tensor, max_norm: float) -> Tensor:
+    """Each row scaled down to `max_norm` where its norm exceeds it."""
+    return vectors * (max_norm / vectors.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
+
+
+def rotvec_from_quat(quat_xyzw: Tensor) -> Tensor:
+    """Axis-angle vectors (radians, angle in [0, pi]) of unit quaternions of either cover (geometry.quat_to_rotvec)."""
+    quat_xyzw = torch.where(quat_xyzw[..., 3:4] < 0, -quat_xyzw, quat_xyzw)
+    sin_half = quat_xyzw[..., :3].norm(dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(sin_half, quat_xyzw[..., 3:4])
+    # angle / sin(angle / 2) -> 2 as the angle goes to 0
+    scale = torch.where(sin_half > 1e-7, angle / sin_half.clamp_min(1e-7), torch.full_like(angle, 2.0))
+    return quat_xyzw[..., :3] * scale
+
+
+def quat_from_rotvec(rotvec_rad: Tensor) -> Tensor:
+    """Unit quaternions (xyzw, qw >= 0 for angles up to pi) of axis-angle vectors (geometry.rotvec_to_quat)."""
+    angle = rotvec_rad.norm(dim=-1, keepdim=True)
+    # sin(angle / 2) / angle -> 1/2 as the angle goes to 0
+    scale = torch.where(angle > 1e-7, torch.sin(angle / 2.0) / angle.clamp_min(1e-7), torch.full_like(angle, 0.5))
+    return torch.cat([rotvec_rad * scale, torch.cos(angle / 2.0)], dim=-1)
 
 
 def _select_rows(outputs: BCRLOutputs, batch: dict, keep: Tensor) -> tuple[BCRLOutputs, dict]:
