@@ -15,6 +15,7 @@ import numpy as np
 from lerobot_bcrl import geometry
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.features import STATE_EEF_POS, STATE_EEF_QUAT, STATE_GRIPPER_QPOS
+from dataset_tools.noise import DemonstratorConfig
 
 
 class Expert(Protocol):
@@ -30,6 +31,7 @@ class Phase(IntEnum):
     DESCEND = 1
     CLOSE = 2
     LIFT = 3
+    GIVE_UP = 4  # an operator who does not retry: hovers above the cube, open, to the end
 
 
 # A planned miss closes the first grasp this much above the grasp point (uniform in the range) and up to
@@ -68,6 +70,10 @@ class ScriptedLiftExpert:
     With `reopen_on_empty_grasp` the expert checks its fingers once closed: closed on nothing, it opens at
     once, wherever it is, and hovers above the cube again, instead of lifting with closed fingers until the
     cube is left 4 cm behind.
+
+    `reset(skill=..., rng=...)` makes it act as an operator of that skill (`DemonstratorConfig`'s knobs: slower,
+    hesitant, misaligned, closing too high, not always retrying), drawing from `rng`; the default skill is the
+    plain expert, action for action.
     """
 
     hover_height_m: float = 0.06  # above the cube centre before descending
@@ -79,12 +85,34 @@ class ScriptedLiftExpert:
     yaw_gain: float = 1.0  # fraction of the yaw error commanded per step
     reopen_on_empty_grasp: bool = False
 
-    def reset(self, miss_offset_m: np.ndarray | None = None) -> None:
+    def reset(
+        self,
+        miss_offset_m: np.ndarray | None = None,
+        skill: DemonstratorConfig | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> None:
         self.phase = Phase.APPROACH
         self._close_count = 0
         self._descend_count = 0
         self._cube_start_pos: np.ndarray | None = None
         self._miss_offset_m = None if miss_offset_m is None else np.asarray(miss_offset_m, dtype=np.float64)
+        self._skill = skill if skill is not None else DemonstratorConfig()
+        self._rng = rng if rng is not None else np.random.default_rng(0)
+        self._pause_steps_left = 0
+        self._last_gripper = geometry.GRIPPER_OPEN
+        self._new_attempt()
+
+    def _new_attempt(self) -> None:
+        """Draw this grasp attempt's mistakes: where the operator aims (offset, yaw) and whether it closes too high."""
+        s = self._skill
+        self._attempt_offset_m = np.zeros(3)
+        self._attempt_yaw_rad = 0.0
+        if s.grasp_offset_std_m > 0:
+            self._attempt_offset_m[:2] = self._rng.normal(0.0, s.grasp_offset_std_m, size=2)
+        if s.yaw_error_std_rad > 0:
+            self._attempt_yaw_rad = float(self._rng.normal(0.0, s.yaw_error_std_rad))
+        if s.close_too_high_probability > 0 and self._rng.uniform() < s.close_too_high_probability:
+            self._attempt_offset_m[2] = self._rng.uniform(*MISS_HEIGHT_RANGE_M)
 
     @property
     def acting_on_planned_miss(self) -> bool:
@@ -99,7 +127,17 @@ class ScriptedLiftExpert:
         if self._cube_start_pos is None:
             self._cube_start_pos = cube_pos.copy()
 
-        miss_offset = self._miss_offset_m if self._miss_offset_m is not None else np.zeros(3)
+        skill = self._skill
+        if self._pause_steps_left == 0 and skill.hesitation_probability > 0:
+            if self._rng.uniform() < skill.hesitation_probability:
+                self._pause_steps_left = skill.hesitation_steps
+        if self._pause_steps_left > 0:  # hesitating: no motion, the gripper kept as it was
+            self._pause_steps_left -= 1
+            return self._controller_action(np.zeros(3), geometry.IDENTITY_QUAT_XYZW, self._last_gripper)
+
+        miss_offset = self._attempt_offset_m.copy()
+        if self._miss_offset_m is not None:
+            miss_offset += self._miss_offset_m
         hover = cube_pos + [miss_offset[0], miss_offset[1], self.hover_height_m]
         gripper = geometry.GRIPPER_OPEN
         if self.phase == Phase.APPROACH:
@@ -128,21 +166,34 @@ class ScriptedLiftExpert:
             # Closed on nothing (with the check), or the cube left behind: open, hover above it again.
             empty_grasp = self.reopen_on_empty_grasp and fingers_closed_on_nothing(state[STATE_GRIPPER_QPOS])
             if empty_grasp or np.linalg.norm(cube_pos - eef_pos) > 0.04:
-                self.phase = Phase.APPROACH
+                retry = skill.retry_probability >= 1.0 or self._rng.uniform() < skill.retry_probability
+                self.phase = Phase.APPROACH if retry else Phase.GIVE_UP
                 self._close_count = self._descend_count = 0
                 gripper = geometry.GRIPPER_OPEN
+                if retry:
+                    self._new_attempt()
+        if self.phase == Phase.GIVE_UP:
+            target = cube_pos + [0.0, 0.0, self.hover_height_m]
 
         delta_pos_m = self.position_gain * (target - eef_pos)
+        if skill.speed != 1.0:  # slower on the whole way, not only near the target: scale the clamped step
+            delta_pos_m = skill.speed * geometry.clamp_delta_pos(delta_pos_m)[0]
         delta_quat = self._yaw_alignment(eef_quat, cube_quat) if self.phase <= Phase.DESCEND else None
         if delta_quat is None:
             delta_quat = geometry.IDENTITY_QUAT_XYZW
-        action, _ = geometry.make_delta_action(delta_pos_m, delta_quat, gripper)
+        self._last_gripper = gripper
+        return self._controller_action(delta_pos_m, delta_quat, gripper)
+
+    @staticmethod
+    def _controller_action(delta_pos_m: np.ndarray, delta_quat_xyzw: np.ndarray, gripper: float) -> np.ndarray:
+        action, _ = geometry.make_delta_action(delta_pos_m, delta_quat_xyzw, gripper)
         controller_action, _ = controller.delta_action_to_controller(action)
         return controller_action
 
     def _yaw_alignment(self, eef_quat_xyzw: np.ndarray, cube_quat_xyzw: np.ndarray) -> np.ndarray:
-        """Rotation about the world z axis that lines the fingers up with the nearest cube face."""
-        error = geometry.cube_yaw_error(eef_quat_xyzw, cube_quat_xyzw)
+        """Rotation about the world z axis that lines the fingers up with the nearest cube face (or the
+        operator's misaligned version of it)."""
+        error = geometry.cube_yaw_error(eef_quat_xyzw, cube_quat_xyzw) + self._attempt_yaw_rad
         return geometry.rotvec_to_quat(np.array([0.0, 0.0, self.yaw_gain * error]))
 
 

@@ -91,6 +91,8 @@ class RecordConfig:
             )
         if self.reopen_on_empty_grasp and self.expert != "scripted":
             raise ValueError("reopen_on_empty_grasp is a behaviour of the scripted expert")
+        if self.expert != "scripted" and any(d.has_skill for d in self.demonstrators):
+            raise ValueError("operator skill knobs (speed, hesitation, ...) are read by the scripted expert only")
 
     def resolved_demonstrators(self) -> list[DemonstratorConfig]:
         if self.demonstrators:
@@ -108,17 +110,24 @@ def make_expert(cfg: RecordConfig) -> Expert:
 
 
 def record_episode(
-    env, expert: Expert, noise: DemonstratorNoise, seed: int, miss_offset_m: np.ndarray | None = None
+    env,
+    expert: Expert,
+    noise: DemonstratorNoise,
+    seed: int,
+    miss_offset_m: np.ndarray | None = None,
+    skill_rng: np.random.Generator | None = None,
 ) -> tuple[dict, dict]:
     """One episode: (frames as arrays keyed by dataset feature, episode statistics).
 
     `miss_offset_m` (scripted expert only) plans a missed first grasp; its frames are flagged not to imitate.
+    A scripted expert acts with the skill of the noise's demonstrator, drawing its mistakes from `skill_rng`;
+    those mistakes are not flagged (every frame imitated).
     """
     observation, _ = env.reset(seed=seed)
-    if miss_offset_m is None:
-        expert.reset()
+    if isinstance(expert, ScriptedLiftExpert):
+        expert.reset(miss_offset_m=miss_offset_m, skill=noise.demonstrator, rng=skill_rng)
     else:
-        expert.reset(miss_offset_m=miss_offset_m)
+        expert.reset()
     columns: dict[str, list] = {
         k: [] for k in (F.STATE_KEY, F.ENV_STATE_KEY, F.ACTION_KEY, F.AUX_EEF_POS_KEY, F.AUX_IMITATE_KEY)
     }
@@ -208,16 +217,15 @@ def record(cfg: RecordConfig) -> Path:
                     miss = None
                     if miss_rng.uniform() < cfg.miss_probability:
                         miss = sample_miss_offset(miss_rng, cfg.miss_height_range_m, cfg.miss_max_aside_m)
-                    frames, stats = record_episode(env, expert, noise, env_seed, miss)
+                    skill_rng = np.random.default_rng([cfg.seed, episode_index, 2])
+                    frames, stats = record_episode(env, expert, noise, env_seed, miss, skill_rng)
                     write_episode(dataset, frames, TASK_DESCRIPTION, source=f"bcrl-record (env seed {env_seed})")
                     rows.append(
                         {
                             "episode_index": episode_index,
                             **stats,
                             "demonstrator_id": demonstrator_id,
-                            "noise_std": demonstrator.noise_std,
-                            "noise_mean": demonstrator.noise_mean,
-                            "noise_correlation": demonstrator.noise_correlation,
+                            **asdict(demonstrator),  # its noise and skill knobs
                             "seed": env_seed,
                         }
                     )

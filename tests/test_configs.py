@@ -28,7 +28,7 @@ def parse(cls, path: Path):
 def test_every_config_file_is_covered():
     tested = {f"{kind}_lift_{mode}.json" for kind in ("bc", "ppo_scratch") for mode in ("lowdim", "images")}
     tested |= {f"record_sigma{sigma}.yaml" for sigma in SIGMAS} | {"record_multi_demonstrator.yaml"}
-    tested |= set(BCRL_CONFIGS) | {"record_lowdim_retry.yaml"}
+    tested |= set(BCRL_CONFIGS) | {"record_lowdim_retry.yaml", "record_operator_mix.yaml"}
     names = {p.name for p in CONFIGS.iterdir() if p.suffix in (".json", ".yaml")}
     assert names == tested, f"configs without a test: {sorted(names - tested)}; tested but missing: {sorted(tested - names)}"
 
@@ -88,3 +88,10 @@ def test_retry_record_config_is_the_recipes_demonstrations_at_any_sigma():
     assert cfg.images is False and cfg.n_episodes == 100 and cfg.seed == 0
     assert cfg.miss_probability == 0.3 and cfg.reopen_on_empty_grasp is True
     assert tuple(cfg.miss_height_range_m) == (0.015, 0.045) and cfg.miss_max_aside_m == 0.035
+
+
+def test_operator_mix_config_is_six_skilled_operators_with_unlabelled_mistakes():
+    cfg = parse(RecordConfig, CONFIGS / "record_operator_mix.yaml")
+    assert len(cfg.demonstrators) == 6 and all(d.has_skill for d in cfg.demonstrators)
+    assert cfg.n_episodes == 120 and cfg.images is False and cfg.miss_probability == 0.0
+    assert cfg.expert == "scripted" and cfg.seed == 0

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -101,7 +102,7 @@ def test_episode_metadata(image_dataset):
         assert episodes["noise_std"][i] == pytest.approx(0.1)
         assert episodes["seed"][i] == 7 + i and episodes["demonstrator_id"][i] == 0
     made_by = json.loads((image_dataset.root / "meta" / "bcrl.json").read_text())
-    assert made_by["demonstrators"] == [{"noise_std": 0.1, "noise_mean": 0.0, "noise_correlation": 0.0}]
+    assert made_by["demonstrators"] == [asdict(DemonstratorConfig(noise_std=0.1))]
 
 
 @pytest.mark.parametrize("backend", ["pyav", "torchcodec"])
