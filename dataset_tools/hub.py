@@ -18,13 +18,14 @@ import json
 import os
 import shutil
 import sys
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import draccus
 from huggingface_hub.errors import HfHubHTTPError, RepositoryNotFoundError
 
 from dataset_tools.local_hub import git_blob_oid
+from dataset_tools.noise import DemonstratorConfig
 from dataset_tools.summary import summarize
 from dataset_tools.writer import default_root, read_bcrl_meta
 
@@ -106,9 +107,11 @@ def dataset_description(root: Path) -> str:
             f"{summary['mean_return']:.1f} +/- {summary['return_ci95']:.1f} (95 % CI)"
         )
     for i, d in enumerate(meta.get("demonstrators", [])):
+        plain = asdict(DemonstratorConfig())  # the skill knobs this operator sets, beside its noise
+        knobs = ", ".join(f"{k} = {v}" for k, v in d.items() if k not in plain or (v != plain[k] and "noise" not in k))
         lines.append(
             f"- **Demonstrator {i}:** noise sigma = {d['noise_std']}, mean = {d['noise_mean']}, "
-            f"correlation = {d['noise_correlation']}"
+            f"correlation = {d['noise_correlation']}" + (f"; {knobs}" if knobs else "")
         )
     if meta.get("command"):
         lines += ["", "Made by:", "", "```bash", meta["command"], "```"]
