@@ -113,6 +113,9 @@ class FastControlStep:
         self._arm = arm
         self._gripper = self._robot.part_controllers[GRIPPER]
         self._gains = np.stack([arm.kp, arm.kd]).astype(np.float64)
+        # The gripper controller's command = bias + weight * goal, from its actuators' range (fixed per controller).
+        gripper_low, gripper_high = np.asarray(self._gripper.actuator_min), np.asarray(self._gripper.actuator_max)
+        self._gripper_bias, self._gripper_weight = 0.5 * (gripper_high + gripper_low), 0.5 * (gripper_high - gripper_low)
         self._gripper_command = None
 
     def _set_goal(self, controller_action: np.ndarray) -> None:
@@ -125,10 +128,8 @@ class FastControlStep:
         arm.new_update = gripper.new_update = True  # as their run_controller leaves them: refresh at the next goal
         self._goal_pos = arm.goal_pos
         self._goal_ori = arm.goal_ori
-        ctrl_range = np.stack([gripper.actuator_min, gripper.actuator_max], axis=-1)
-        bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
-        weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
-        self._gripper_command = np.clip(bias + weight * np.array(gripper.goal_qvel), self._gripper_ctrl_low, self._gripper_ctrl_high)
+        command = self._gripper_bias + self._gripper_weight * np.array(gripper.goal_qvel)
+        self._gripper_command = np.clip(command, self._gripper_ctrl_low, self._gripper_ctrl_high)
 
     def _load_arm_reference(self) -> None:
         """Write this substep's reference data into the arm controller, as its update() would, and mark it fresh."""
