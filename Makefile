@@ -7,7 +7,7 @@ export PYOPENGL_PLATFORM ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
-.PHONY: setup demo test test-fast bench experiments clean
+.PHONY: setup demo test test-fast bench experiments weak-expert clean
 
 setup:
 	@bash scripts/setup.sh
@@ -17,6 +17,9 @@ demo: setup
 
 experiments: setup   # make experiments SIGMA=0.01 [MODE=images]: the paper's runs for one sigma (docs/RESULTS.md)
 	SIGMA=$(or $(SIGMA),0.1) MODE=$(or $(MODE),lowdim) bash scripts/experiments.sh
+
+weak-expert: setup   # the paper's kind of demonstrator, a weak learned policy (configs/record_weak_expert.yaml)
+	bash scripts/weak_expert.sh
 
 test: setup
 	$(PY) -m pytest -q tests

@@ -51,3 +51,26 @@ def test_experiments_script_runs_the_recipe_by_default(tmp_path):
     assert json.loads((out / "bc_only" / "eval_final.json").read_text())["method"] == "BC"
     report = (out / "report" / "report.md").read_text()
     assert "BC+RL" in report and "Table 1" in report
+
+
+@pytest.mark.slow
+def test_weak_expert_script_makes_a_checkpoint_that_records_the_weak_expert_config(tmp_path):
+    out = tmp_path / "weak_expert"
+    env = {**os.environ, "OUT": str(out), "EPISODES": "1", "BC_STEPS": "2"}
+    result = subprocess.run(["bash", "scripts/weak_expert.sh"], cwd=ROOT, env=env, capture_output=True, text=True)
+    assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
+    scripted = json.loads((out / "scripted" / "meta" / "bcrl.json").read_text())
+    assert scripted["record_config"]["seed"] == 100_000 and scripted["expert"] == "scripted"
+    [operator] = scripted["demonstrators"]  # one slow operator without noise
+    assert operator["speed"] == 0.7 and operator["noise_std"] == 0.0
+    expert = out / "bc" / "checkpoints" / "last" / "pretrained_model"
+    assert json.loads((expert / "config.json").read_text())["type"] == "bcrl"
+
+    data = tmp_path / "demos"
+    record = [str(ROOT / ".venv" / "bin" / "bcrl-record"), "--config_path=configs/record_weak_expert.yaml",
+              f"--expert={expert}", f"--root={data}", "--n_episodes=1", "--episode_length=20", "--sigma=0.01"]
+    result = subprocess.run(record, cwd=ROOT, env=env, capture_output=True, text=True)
+    assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
+    recorded = json.loads((data / "meta" / "bcrl.json").read_text())
+    assert recorded["expert"] == str(expert) and recorded["record_config"]["sigma"] == 0.01
+    assert recorded["record_config"]["images"] is False and recorded["record_config"]["miss_probability"] == 0.0
