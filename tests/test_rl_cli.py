@@ -60,7 +60,7 @@ def test_killed_run_resumes_with_same_theta_and_step_count(lowdim_dataset_root, 
     assert killed_at["env_steps"] % 128 == 0 and killed_at["env_steps"] >= 128
 
     killed_log_std = load_file(last / "pretrained_model" / "model.safetensors")["log_std"]
-    assert not np.allclose(killed_log_std.numpy(), [-1.0] * 3 + [-3.0] * 4)  # learned from its reset value
+    assert killed_log_std.shape == (6,) and not np.allclose(killed_log_std.numpy(), -1.0)  # learned from its reset value
 
     target = killed_at["env_steps"] + 256
     output = run_cli("bcrl-finetune", *finetune_args(lowdim_dataset_root, tmp_path / "run", target, *extra), "--resume=true")
