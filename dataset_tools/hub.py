@@ -106,9 +106,10 @@ def dataset_description(root: Path) -> str:
             f"- **Demonstrators' success / return:** {summary['success_rate']:.0%} / "
             f"{summary['mean_return']:.1f} +/- {summary['return_ci95']:.1f} (95 % CI)"
         )
+    plain_expert = asdict(DemonstratorConfig())
     for i, d in enumerate(meta.get("demonstrators", [])):
-        plain = asdict(DemonstratorConfig())  # the skill knobs this operator sets, beside its noise
-        knobs = ", ".join(f"{k} = {v}" for k, v in d.items() if k not in plain or (v != plain[k] and "noise" not in k))
+        # the skill knobs this operator sets away from the plain expert's (its noise has its own words)
+        knobs = ", ".join(f"{k} = {v}" for k, v in d.items() if not k.startswith("noise_") and v != plain_expert.get(k))
         lines.append(
             f"- **Demonstrator {i}:** noise sigma = {d['noise_std']}, mean = {d['noise_mean']}, "
             f"correlation = {d['noise_correlation']}" + (f"; {knobs}" if knobs else "")

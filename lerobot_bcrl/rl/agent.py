@@ -108,7 +108,8 @@ class BCRLAgent:
     @staticmethod
     def _log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions):
         n = continuous_dist.mean.shape[-1]  # the continuous dims, then the gripper class
-        log_prob = continuous_dist.log_prob(raw_actions[:, :n]).sum(-1) + gripper_dist.log_prob(raw_actions[:, n].long())
+        log_prob = continuous_dist.log_prob(raw_actions[:, :n]).sum(-1)
+        log_prob = log_prob + gripper_dist.log_prob(raw_actions[:, n].long())
         return log_prob, continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
 
     def to_env_action(self, raw_actions):

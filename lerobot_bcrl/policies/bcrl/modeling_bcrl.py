@@ -160,8 +160,8 @@ class BCRLPolicy(PreTrainedPolicy):
         config.validate_features()
         self.config = config
         self.model = BCRLModel(config)
-        # Log-std of PPO's Gaussian over [delta_pos / scale, delta_rotvec / scale]; BC never trains it, bcrl-finetune sets it
-        # (PPOConfig.reset_log_std*) before the first update.
+        # Log-std of PPO's Gaussian over [delta_pos / scale, delta_rotvec / scale]; BC never trains it,
+        # bcrl-finetune sets it (PPOConfig.reset_log_std) before the first update.
         self.log_std = nn.Parameter(torch.zeros(CONTINUOUS_DIM))
         # Buffers, saved in model.safetensors: a checkpoint keeps the statistics of the data it was trained on.
         self.register_buffer("gripper_class_weights", self._gripper_class_weights(dataset_stats))
@@ -206,7 +206,7 @@ class BCRLPolicy(PreTrainedPolicy):
 
     # -- PPO's action distribution (rl/agent.py samples and scores it) -----------------------------------
     def action_distributions(self, outputs: BCRLOutputs) -> tuple[Normal, Categorical]:
-        """Gaussian over [delta_pos / scale, delta_rotvec / scale] with the learned log-std, categorical over the gripper."""
+        """Gaussian over [delta_pos / scale, delta_rotvec / scale] with the learned log-std; categorical gripper."""
         mean = torch.cat([outputs.delta_pos_scaled, outputs.delta_rot_scaled], dim=-1)
         return Normal(mean, self.log_std.exp().expand_as(mean)), Categorical(logits=outputs.gripper_logits)
 
