@@ -133,12 +133,13 @@ def test_process_workers_match_inline_workers():
 
 
 def test_a_dead_worker_is_named_not_a_bare_eof_error():
-    """A worker killed mid-run (e.g. by the OOM killer) gives an error naming it, its exit code and --resume."""
+    """A worker killed mid-run (e.g. by the OOM killer) that may not be replaced (`max_failures=1`) gives an error
+    naming it, its exit code and --resume."""
     from lerobot_bcrl.rl.rollout import ProcessWorkers
 
     state = MLPAgent().module.state_dict()
     kwargs = [{"make_env": ReachOrigin, "make_agent": MLPAgent, "n_envs": 1, "seed": i} for i in range(2)]
-    processes = ProcessWorkers(kwargs)
+    processes = ProcessWorkers(kwargs, max_failures=1)
     try:
         processes.collect(state, 5)
         os.kill(processes.processes[1].pid, signal.SIGKILL)

@@ -58,4 +58,6 @@ def start_workers(cfg, policy, preprocessor, postprocessor, seed: int) -> Rollou
         }
         for i in range(max(cfg.rollout.n_workers, 1))
     ]
-    return make_workers(cfg.rollout.n_workers, worker_kwargs)
+    rollout = cfg.rollout
+    return make_workers(worker_kwargs, rollout.n_workers, rollout.backend, rollout.ray_address, rollout.timeout_s,
+                        rollout.max_worker_failures)

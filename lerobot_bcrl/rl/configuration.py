@@ -15,9 +15,11 @@ from lerobot.envs.configs import EnvConfig
 from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
 from lerobot_bcrl.rl.checkpoint import policy_env_steps
 from lerobot_bcrl.rl.ppo import PPOConfig
+from lerobot_bcrl.rl.rollout import MAX_WORKER_FAILURES, WORKER_TIMEOUT_S
 from lerobot_bcrl.rl.schedule import ScheduleConfig
 
 SELECTIONS = ("last", "best_validation")
+ROLLOUT_BACKENDS = ("process", "ray")
 
 
 @dataclass
@@ -30,9 +32,21 @@ class DemoDatasetConfig:
 
 @dataclass
 class RolloutConfig:
-    n_workers: int = 2  # subprocesses; 0 runs the envs in this process
+    backend: str = "process"  # "process": subprocesses of this one; "ray": Ray actors, here or on a cluster
+    ray_address: str | None = None  # a running Ray cluster (`ray start --head`'s address); None: a Ray started here
+    n_workers: int = 2  # subprocesses or actors; 0 runs the envs in this process (process backend)
     envs_per_worker: int = 2
     steps_per_env: int = 128  # rollout length per env per iteration
+    timeout_s: float = WORKER_TIMEOUT_S  # a worker silent this long in a collect or evaluation is killed and replaced
+    max_worker_failures: int = MAX_WORKER_FAILURES  # a worker failing this many calls in a row stops the run
+
+    def __post_init__(self):
+        if self.backend not in ROLLOUT_BACKENDS:
+            raise ValueError(f"--rollout.backend={self.backend!r}: choose one of {ROLLOUT_BACKENDS}")
+        if self.backend == "ray" and self.n_workers < 1:
+            raise ValueError("--rollout.backend=ray runs the envs in actors: give --rollout.n_workers >= 1")
+        if self.ray_address and self.backend != "ray":
+            raise ValueError("--rollout.ray_address is for --rollout.backend=ray")
 
     @property
     def n_envs(self) -> int:

@@ -280,7 +280,7 @@ def finetune(cfg) -> dict:
             last_train = train or last_train  # the progress bar shows the last finished episodes
             row = {"env_steps": env_steps, "ppo_iteration": schedule.ppo_iteration, "optim_step": schedule.optim_step,
                    "wall_s": time.time() - start_time, "collect_s": learn_start - collect_start,
-                   "learn_s": time.time() - learn_start, **metrics, **train,
+                   "learn_s": time.time() - learn_start, "worker_restarts": workers.restarts, **metrics, **train,
                    "theta": schedule.theta(cfg.schedule)}  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
                 row.update(validate())

@@ -1,17 +1,20 @@
 """Rollout collection behind one small interface: workers take policy weights and return trajectories.
 
 `RolloutWorker` owns a few env copies and a copy of the agent; `InlineWorkers` runs them in this process,
-`ProcessWorkers` one per subprocess. A Ray pool would wrap the same `RolloutWorker` class (`ray.remote`).
+`ProcessWorkers` one per subprocess, `RayWorkers` one per Ray actor; the last two replace a worker that dies or hangs.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import logging
 import multiprocessing as mp
+import multiprocessing.connection as mp_connection
 import os
 import signal
 import sys
+import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
@@ -21,6 +24,13 @@ import torch
 
 from lerobot_bcrl import rerun_log
 from lerobot_bcrl.rl.agent import Agent, flatten_observation
+
+logger = logging.getLogger(__name__)
+WORKER_TIMEOUT_S = 900.0  # a worker that has not answered a collect or evaluation in this long is killed and replaced
+MAX_WORKER_FAILURES = 3  # a worker failing this many calls in a row stops the run
+# Starting a worker (imports, envs, agent; on Ray, waiting for a free CPU) may take minutes on a loaded machine: a
+# start is given at least this long, whatever a collect's timeout.
+START_TIMEOUT_S = 300.0
 
 
 @dataclass
@@ -76,35 +86,46 @@ def stack_observations(observations: list[dict[str, np.ndarray]]) -> dict[str, n
     return {key: np.stack([o[key] for o in observations]) for key in observations[0]}
 
 
+def derived_seed(*keys: int) -> int:
+    """A 31-bit seed from non-negative integer keys: the same keys give the same seed in any process or machine."""
+    return int(np.random.SeedSequence(keys).generate_state(1)[0] >> 1)
+
+
+EPISODE_SEEDS, ACTION_SEEDS = 0, 1  # the first key after the worker's seed: which stream a derived seed feeds
+
+
 class RolloutWorker:
     """`n_envs` env copies and one agent. Envs keep running across `collect` calls (episodes span rollouts).
 
-    Episode seeds come from a generator seeded with `seed`, actions from torch's RNG seeded with `seed`:
-    the same weights give the same trajectories.
+    Env i's n-th episode is seeded with `derived_seed(seed, EPISODE_SEEDS, i, n)`, the actions of the k-th `collect`
+    come from torch's RNG seeded with `derived_seed(seed, ACTION_SEEDS, k)`: the same weights give the same
+    trajectories, and `reseed` puts a replacement worker where a dead one stood.
     """
 
     def __init__(self, make_env: Callable[[], gym.Env], make_agent: Callable[[], Agent], n_envs: int,
                  seed: int, make_eval_env: Callable[[], gym.Env] | None = None):
         self.agent = make_agent()
-        # Each worker owns its torch RNG stream (swapped in around collect/evaluate), so several workers in
-        # one process draw the same actions as the same workers in separate processes.
-        outer_rng = torch.get_rng_state()
-        torch.manual_seed(seed)  # after the agent is built: its initialisation may seed torch itself
-        self._torch_rng = torch.get_rng_state()
-        torch.set_rng_state(outer_rng)
+        self.seed = seed
         self.envs = [make_env() for _ in range(n_envs)]
         self.make_eval_env = make_eval_env or make_env  # e.g. one that logs its episodes to rerun
         self.eval_env: gym.Env | None = None
-        self.seed_rng = np.random.default_rng(seed)
+        self.reseed(0, [0] * n_envs)
+
+    def reseed(self, iteration: int, episodes_done: list[int]) -> None:
+        """Start env i on its episode `episodes_done[i]` (reset from that episode's seed) and the next `collect` on
+        iteration `iteration`'s actions. An iteration that starts on episode boundaries is then collected exactly as
+        the worker that died in it would have; an episode the dead worker was in the middle of starts again."""
+        self.iteration = iteration
+        self.episode_index = [int(n) for n in episodes_done]
         self.observations, self.running = [], []
-        for env in self.envs:
-            obs, stats = self._reset(env)
+        for i in range(len(self.envs)):
+            obs, stats = self._reset(i)
             self.observations.append(obs)
             self.running.append(stats)
 
-    def _reset(self, env: gym.Env) -> tuple[dict[str, np.ndarray], EpisodeStats]:
-        episode_seed = int(self.seed_rng.integers(2**31))
-        obs, _ = env.reset(seed=episode_seed)
+    def _reset(self, env_index: int) -> tuple[dict[str, np.ndarray], EpisodeStats]:
+        episode_seed = derived_seed(self.seed, EPISODE_SEEDS, env_index, self.episode_index[env_index])
+        obs, _ = self.envs[env_index].reset(seed=episode_seed)
         return flatten_observation(obs), EpisodeStats(0.0, 0, False, None, seed=episode_seed)
 
     def _load(self, state_dict: dict[str, torch.Tensor] | None) -> None:
@@ -113,12 +134,13 @@ class RolloutWorker:
 
     @contextlib.contextmanager
     def _own_rng(self):
+        """Torch's RNG on this iteration's seed, the caller's left as it was: several workers in one process draw
+        the same actions as the same workers in separate processes."""
         outer_rng = torch.get_rng_state()
-        torch.set_rng_state(self._torch_rng)
+        torch.manual_seed(derived_seed(self.seed, ACTION_SEEDS, self.iteration))
         try:
             yield
         finally:
-            self._torch_rng = torch.get_rng_state()
             torch.set_rng_state(outer_rng)
 
     def collect(self, state_dict: dict[str, torch.Tensor] | None, steps_per_env: int) -> Trajectories:
@@ -153,9 +175,11 @@ class RolloutWorker:
                         truncation_values[t, i] = float(self.agent.value(last_obs)[0])
                     dones[t, i] = 1.0
                     finished.append(self.running[i])
-                    obs, self.running[i] = self._reset(env)
+                    self.episode_index[i] += 1
+                    obs, self.running[i] = self._reset(i)
                 self.observations[i] = obs
         last_values = self.agent.value(self.agent.observation_batch(stack_observations(self.observations)))
+        self.iteration += 1
         return Trajectories(
             observations={k: np.stack([o[k] for o in obs_steps]) for k in obs_steps[0]},
             actions=np.stack(action_steps),
@@ -205,6 +229,8 @@ class RolloutWorkers(Protocol):
     """The interface the algorithm sees. Swap the implementation (process pool, Ray) without touching PPO.
     `state_dict` is the agent's (`Agent.state_dict()`: weights and any observation statistics)."""
 
+    restarts: int  # workers replaced so far (died or hung)
+
     def collect(self, state_dict: dict[str, torch.Tensor], steps_per_env: int) -> Trajectories: ...
     def evaluate(self, state_dict: dict[str, torch.Tensor], seeds: list[int],
                  annotations: dict[str, float] | None = None) -> list[EpisodeStats]: ...
@@ -217,6 +243,8 @@ def split_evenly(items: list, n_parts: int) -> list[list]:
 
 class InlineWorkers:
     """The workers in this process, one after the other (tests, debugging, a single core)."""
+
+    restarts = 0
 
     def __init__(self, worker_kwargs: list[dict]):
         self.workers = [RolloutWorker(**kwargs) for kwargs in worker_kwargs]
@@ -264,74 +292,224 @@ def _worker_main(connection, worker_kwargs: dict) -> None:
         connection.send(getattr(worker, command)(*args))
 
 
-class ProcessWorkers:
-    """One `RolloutWorker` per subprocess (spawned: safe with MuJoCo's EGL and torch threads)."""
+class RestartingWorkers:
+    """What the process and Ray pools share: every call goes to all workers at once and is awaited until a deadline;
+    a worker that died (SIGKILL, segfault, out of memory, an exception) or gave no answer in `timeout_s` (killed) is
+    replaced, re-seeded where it stood (`RolloutWorker.reseed`), and its part of the call made again. A worker that
+    fails `max_failures` calls in a row stops the run. A backend starts, calls and awaits workers by index."""
 
-    def __init__(self, worker_kwargs: list[dict]):
-        context = mp.get_context("spawn")
-        self.connections, self.processes = [], []
-        for kwargs in worker_kwargs:
-            parent, child = context.Pipe()
-            process = context.Process(target=_worker_main, args=(child, kwargs), daemon=True)
-            process.start()
-            self.connections.append(parent)
-            self.processes.append(process)
-        for index in range(len(self.connections)):
-            self._receive(index)  # "ready"
+    def __init__(self, worker_kwargs: list[dict], timeout_s: float, max_failures: int):
+        self.worker_kwargs, self.timeout_s, self.max_failures = worker_kwargs, timeout_s, max_failures
+        self.iteration = 0  # collects so far: where a replacement resumes
+        self.episodes_done = [np.zeros(kwargs["n_envs"], np.int64) for kwargs in worker_kwargs]
+        self.failures_in_a_row = [0] * len(worker_kwargs)
+        self.restarts = 0
+        self.start_timeout_s = max(timeout_s, START_TIMEOUT_S)
+        for index in range(len(worker_kwargs)):
+            self._launch(index)
+        _, failures = self._gather(range(len(worker_kwargs)), self.start_timeout_s)
+        for index, cause in failures.items():
+            self._replace(index, cause, "start")
 
-    def _receive(self, index: int):
-        try:
-            return self.connections[index].recv()
-        except (EOFError, ConnectionResetError):
-            self._raise_worker_died(index)
+    def _launch(self, index: int) -> None:  # start worker `index` (again); its readiness is its next answer
+        raise NotImplementedError
 
-    def _raise_worker_died(self, index: int):
-        """An error that says which worker died and how, instead of a bare EOFError / BrokenPipeError."""
-        process = self.processes[index]
-        process.join(timeout=5)
-        code = process.exitcode
-        how = " (SIGKILL: out of memory?)" if code == -9 else ""
-        raise RuntimeError(
-            f"rollout worker {index} (pid {process.pid}) died with exit code {code}{how}; its traceback, if it "
-            "raised one, is printed above. Continue the run from its last checkpoint with --resume=true."
-        ) from None
+    def _submit(self, index: int, command: str, args: tuple) -> None:
+        raise NotImplementedError
+
+    def _gather(self, indices, timeout_s: float) -> tuple[dict[int, object], dict[int, str]]:
+        """The next answer of each worker in `indices`, and for those that gave none, what happened to them (the
+        hung ones killed)."""
+        raise NotImplementedError
+
+    def _shared(self, state_dict: dict[str, torch.Tensor]):  # the weights as every worker receives them
+        return {k: v.detach().cpu() for k, v in state_dict.items()}
+
+    def _replace(self, index: int, cause: str, command: str) -> None:
+        while cause is not None:
+            self.failures_in_a_row[index] += 1
+            what = f"rollout worker {index} {cause} during {command} at iteration {self.iteration}"
+            if self.failures_in_a_row[index] >= self.max_failures:
+                raise RuntimeError(
+                    f"{what}: {self.failures_in_a_row[index]} failures in a row, stopping (its traceback, if it raised "
+                    "one, is above). Continue the run from its last checkpoint with --resume=true."
+                ) from None
+            logger.warning(f"{what}; replacing it (its envs re-seeded where they stood) and repeating its {command}")
+            self.restarts += 1
+            self._launch(index)
+            cause = self._gather([index], self.start_timeout_s)[1].get(index)
+            if cause is None:
+                self._submit(index, "reseed", (self.iteration, self.episodes_done[index].tolist()))
+                cause = self._gather([index], self.start_timeout_s)[1].get(index)
 
     def _call_all(self, command: str, per_worker_args: list[tuple]) -> list:
         for index, args in enumerate(per_worker_args):
-            try:
-                self.connections[index].send((command, args))
-            except (BrokenPipeError, ConnectionResetError):
-                self._raise_worker_died(index)
-        return [self._receive(index) for index in range(len(self.connections))]
+            self._submit(index, command, args)
+        results, failures = self._gather(range(len(per_worker_args)), self.timeout_s)
+        while failures:
+            for index, cause in failures.items():
+                self._replace(index, cause, command)
+                self._submit(index, command, per_worker_args[index])
+            answered, failures = self._gather(list(failures), self.timeout_s)
+            results.update(answered)
+        self.failures_in_a_row = [0] * len(per_worker_args)
+        return [results[index] for index in range(len(per_worker_args))]
 
     def collect(self, state_dict, steps_per_env):
-        state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
-        parts = self._call_all("collect", [(state_dict, steps_per_env)] * len(self.connections))
+        shared = self._shared(state_dict)
+        parts = self._call_all("collect", [(shared, steps_per_env)] * len(self.worker_kwargs))
+        for episodes_done, part in zip(self.episodes_done, parts):
+            episodes_done += part.dones.sum(axis=0).astype(np.int64)
+        self.iteration += 1
         return Trajectories.concatenate(parts)
 
     def evaluate(self, state_dict, seeds, annotations=None):
-        state_dict = {k: v.detach().cpu() for k, v in state_dict.items()}
+        shared = self._shared(state_dict)
         parts = self._call_all(
             "evaluate",
-            [(state_dict, part, annotations) for part in split_evenly(list(seeds), len(self.connections))],
+            [(shared, part, annotations) for part in split_evenly(list(seeds), len(self.worker_kwargs))],
         )
         return [e for part in parts for e in part]
 
+
+def _exit_description(exitcode: int | None) -> str:
+    if exitcode is None or exitcode >= 0:
+        return f"exit code {exitcode}"
+    name = signal.Signals(-exitcode).name
+    return f"exit code {exitcode} ({name}: out of memory?)" if name == "SIGKILL" else f"exit code {exitcode} ({name})"
+
+
+class ProcessWorkers(RestartingWorkers):
+    """One `RolloutWorker` per subprocess (spawned: safe with MuJoCo's EGL and torch threads)."""
+
+    def __init__(self, worker_kwargs: list[dict], timeout_s: float = WORKER_TIMEOUT_S,
+                 max_failures: int = MAX_WORKER_FAILURES):
+        self.context = mp.get_context("spawn")
+        self.connections: list = [None] * len(worker_kwargs)
+        self.processes: list = [None] * len(worker_kwargs)
+        super().__init__(worker_kwargs, timeout_s, max_failures)
+
+    def _launch(self, index):
+        if self.processes[index] is not None:  # the one it replaces: dead, or killed as hung
+            self.processes[index].kill()
+            self.processes[index].join()
+            self.connections[index].close()
+        parent, child = self.context.Pipe()
+        process = self.context.Process(target=_worker_main, args=(child, self.worker_kwargs[index]), daemon=True)
+        process.start()
+        child.close()  # the worker's end lives in the worker only: its death reads as end of file here
+        self.connections[index], self.processes[index] = parent, process
+
+    def _submit(self, index, command, args):
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # dead: `_gather` reads its end of file
+            self.connections[index].send((command, args))
+
+    def _gather(self, indices, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        waiting = {self.connections[index]: index for index in indices}
+        results, failures = {}, {}
+        while waiting:
+            ready = mp_connection.wait(list(waiting), timeout=max(deadline - time.monotonic(), 0))
+            if not ready:
+                for index in waiting.values():
+                    self.processes[index].kill()
+                    failures[index] = f"(pid {self.processes[index].pid}) gave no answer in {timeout_s:g} s, killed"
+                break
+            for connection in ready:
+                index = waiting.pop(connection)
+                try:
+                    results[index] = connection.recv()
+                except (EOFError, ConnectionResetError):
+                    process = self.processes[index]
+                    process.join(timeout=5)
+                    failures[index] = f"(pid {process.pid}) died with {_exit_description(process.exitcode)}"
+        return results, failures
+
     def close(self):
         for connection in self.connections:
-            try:
+            with contextlib.suppress(BrokenPipeError, OSError):
                 connection.send(("close", ()))
-            except (BrokenPipeError, OSError):
-                pass
         for process in self.processes:
             process.join(timeout=10)
             if process.is_alive():
                 process.terminate()
 
 
-def make_workers(n_workers: int, worker_kwargs: list[dict]) -> RolloutWorkers:
-    """`n_workers = 0`: inline; otherwise one subprocess per entry of `worker_kwargs`."""
-    return InlineWorkers(worker_kwargs) if n_workers == 0 else ProcessWorkers(worker_kwargs)
+def _ray():
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("--rollout.backend=ray needs Ray: pip install '.[ray]'") from None
+    return ray
+
+
+class RayWorkers(RestartingWorkers):
+    """One `RolloutWorker` per Ray actor (one CPU each), on the cluster at `address` or on a Ray started here. The
+    weights go into Ray's object store once per call; Ray restarts a dead actor (`max_restarts`), and a hung one
+    is killed into a restart."""
+
+    def __init__(self, worker_kwargs: list[dict], address: str | None = None, timeout_s: float = WORKER_TIMEOUT_S,
+                 max_failures: int = MAX_WORKER_FAILURES):
+        if address is None and "ray" not in sys.modules:
+            # Ray resolves 127.0.0.1 to the machine's address and listens on every interface unless multi-node
+            # support is off: a Ray only this run uses stays on loopback.
+            os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        ray = _ray()
+        self.started_ray = not ray.is_initialized()
+        if self.started_ray:
+            local = {"num_cpus": max(os.cpu_count() or 1, len(worker_kwargs)), "_node_ip_address": "127.0.0.1",
+                     "include_dashboard": False}
+            ray.init(address=address, log_to_driver=True, **({} if address else local))
+        actor_class = ray.remote(num_cpus=1, max_restarts=-1)(RolloutWorker)
+        self.actors = [actor_class.remote(**kwargs) for kwargs in worker_kwargs]
+        self.pending: list = [None] * len(worker_kwargs)
+        super().__init__(worker_kwargs, timeout_s, max_failures)
+
+    def _launch(self, index):
+        """Ray starts (and restarts) the actor; asked while it restarts, it answers once it is up (the retries)."""
+        self.pending[index] = self.actors[index].__ray_ready__.options(max_task_retries=-1).remote()
+
+    def _submit(self, index, command, args):
+        self.pending[index] = getattr(self.actors[index], command).remote(*args)
+
+    def _shared(self, state_dict):
+        return _ray().put(super()._shared(state_dict))
+
+    def _gather(self, indices, timeout_s):
+        ray = _ray()
+        waiting = {self.pending[index]: index for index in indices}
+        ready, not_ready = ray.wait(list(waiting), num_returns=len(waiting), timeout=timeout_s)
+        results, failures = {}, {}
+        for ref in ready:
+            index = waiting[ref]
+            try:
+                results[index] = ray.get(ref)
+            except ray.exceptions.RayTaskError as error:
+                failures[index] = f"raised {type(error.cause).__name__}: {error.cause}"
+            except ray.exceptions.RayError as error:
+                failures[index] = f"died ({type(error).__name__}: {str(error).splitlines()[0]})"
+        for ref in not_ready:
+            ray.kill(self.actors[waiting[ref]], no_restart=False)
+            failures[waiting[ref]] = f"gave no answer in {timeout_s:g} s, killed"
+        return results, failures
+
+    def close(self):
+        ray = _ray()
+        for actor in self.actors:
+            ray.kill(actor)
+        if self.started_ray:
+            ray.shutdown()
+
+
+def make_workers(worker_kwargs: list[dict], n_workers: int, backend: str = "process", ray_address: str | None = None,
+                 timeout_s: float = WORKER_TIMEOUT_S, max_failures: int = MAX_WORKER_FAILURES) -> RolloutWorkers:
+    """`backend="process"`: one subprocess per entry of `worker_kwargs`, or all inline with `n_workers = 0`;
+    `"ray"`: one Ray actor each."""
+    if backend == "ray":
+        return RayWorkers(worker_kwargs, ray_address, timeout_s, max_failures)
+    if n_workers == 0:
+        return InlineWorkers(worker_kwargs)
+    return ProcessWorkers(worker_kwargs, timeout_s, max_failures)
 
 
 def make_gym_env(gym_id: str, gym_kwargs: dict) -> gym.Env:

@@ -1,0 +1,217 @@
+"""The rollout backends (subprocesses, Ray actors) give the same trajectories, and survive a worker that dies
+(SIGKILL, segfault, abort) or hangs: it is replaced, re-seeded where it stood, and its part collected again; a
+worker that keeps dying stops the run with one line. Real worker processes, real faults."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import ctypes
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+from policy_fixtures import lowdim_dataset_root  # noqa: F401
+from test_rl_learns import MLPAgent, ReachOrigin
+
+from lerobot_bcrl.rl.rollout import InlineWorkers, RolloutWorker, Trajectories, make_workers
+
+BIN = Path(sys.executable).parent
+EPISODE_STEPS = 20  # ReachOrigin's time limit
+
+
+class FaultyReachOrigin(ReachOrigin):
+    """ReachOrigin whose `at_step`-th step (counted from the env's construction) hangs, segfaults or aborts while
+    the file `trigger` exists; `once` removes the file first, so that the replacement worker runs clean."""
+
+    def __init__(self, fault: str, at_step: int, trigger: str, once: bool = True):
+        self.fault, self.at_step, self.trigger, self.once = fault, at_step, trigger, once
+        self.steps = 0
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps == self.at_step and os.path.exists(self.trigger):
+            if self.once:
+                os.remove(self.trigger)
+            if self.fault == "hang":
+                time.sleep(3600)
+            elif self.fault == "segfault":
+                ctypes.string_at(0)
+            else:
+                os.abort()
+        return super().step(action)
+
+
+def worker_kwargs(n_workers: int = 2, faulty: dict | None = None) -> list[dict]:
+    """Two workers of one env each; worker 0 with a `FaultyReachOrigin(**faulty)`."""
+    return [{"make_env": partial(FaultyReachOrigin, **faulty) if faulty and i == 0 else ReachOrigin,
+             "make_agent": MLPAgent, "n_envs": 1, "seed": 11 + i} for i in range(n_workers)]
+
+
+def collect_iterations(workers, n_iterations: int, steps_per_env: int) -> list[Trajectories]:
+    state = MLPAgent().module.state_dict()
+    try:
+        return [workers.collect(state, steps_per_env) for _ in range(n_iterations)]
+    finally:
+        workers.close()
+
+
+def assert_same(a: list[Trajectories], b: list[Trajectories]) -> None:
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.observations["obs"], y.observations["obs"])
+        np.testing.assert_array_equal(x.actions, y.actions)
+        np.testing.assert_array_equal(x.rewards, y.rewards)
+        np.testing.assert_array_equal(x.last_values, y.last_values)
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    ray = pytest.importorskip("ray")
+    tests = str(Path(__file__).parent)  # the actors unpickle this module's envs and agent
+    ray.init(num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False,
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}})
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(params=["process", "ray"])
+def backend(request) -> str:
+    if request.param == "ray":
+        request.getfixturevalue("ray_session")
+    return request.param
+
+
+def test_ray_process_and_inline_workers_return_identical_trajectories(ray_session):
+    """Same seeds and weights, same trajectories and evaluations on every backend: a run can move between them."""
+    state = MLPAgent().module.state_dict()
+    kwargs = [{"make_env": ReachOrigin, "make_agent": MLPAgent, "n_envs": 2, "seed": 3 + i} for i in range(2)]
+    seeds = [10, 11, 12]
+    outcomes = {}
+    for backend in ("inline", "process", "ray"):
+        workers = make_workers(kwargs, 0 if backend == "inline" else 2, "ray" if backend == "ray" else "process")
+        try:
+            outcomes[backend] = ([workers.collect(state, 25) for _ in range(2)],  # the second starts mid-episode
+                                 [e.episode_return for e in workers.evaluate(state, seeds, {"theta_t": 0.5})])
+        finally:
+            workers.close()
+    for backend in ("process", "ray"):
+        assert_same(outcomes["inline"][0], outcomes[backend][0])
+        assert outcomes["inline"][1] == outcomes[backend][1]
+
+
+def test_a_dead_and_a_hung_worker_are_replaced_and_the_run_unchanged_on_whole_episodes(backend, tmp_path, caplog):
+    """Worker 0 segfaults in the second of three iterations of whole episodes, worker 1 hangs in the third. Each
+    replacement starts its iteration from the same episode seeds and action seeds as the worker it replaces, so
+    the three iterations equal an unfaulted run's."""
+    segfault, hang = tmp_path / "segfault", tmp_path / "hang"
+    segfault.touch(), hang.touch()
+    kwargs = worker_kwargs(faulty={"fault": "segfault", "at_step": EPISODE_STEPS + 5, "trigger": str(segfault)})
+    kwargs[1]["make_env"] = partial(FaultyReachOrigin, "hang", 2 * EPISODE_STEPS + 5, str(hang))
+    workers = make_workers(kwargs, 2, backend, timeout_s=3)
+    with caplog.at_level(logging.WARNING, logger="lerobot_bcrl.rl.rollout"):
+        faulted = collect_iterations(workers, 3, EPISODE_STEPS)
+    assert workers.restarts == 2 and not segfault.exists() and not hang.exists()
+    died, hung = caplog.messages
+    assert died.startswith("rollout worker 0 ") and "during collect at iteration 1; replacing it" in died
+    assert hung.startswith("rollout worker 1 ") and "gave no answer in 3 s, killed during collect at iteration 2" in hung
+    if backend == "process":
+        assert "died with exit code -11 (SIGSEGV)" in died
+    assert_same(collect_iterations(InlineWorkers(worker_kwargs()), 3, EPISODE_STEPS), faulted)
+
+
+def test_a_worker_reseeded_in_the_middle_of_an_episode_starts_that_episode_again():
+    """Iterations of 15 steps on 20-step episodes: a replacement for the second iteration resets each env to the
+    episode it was 15 steps into (same seed, same first observation) and plays it from the start."""
+    state = MLPAgent().module.state_dict()
+    worker = RolloutWorker(ReachOrigin, MLPAgent, n_envs=2, seed=11)
+    first, second = worker.collect(state, 15), worker.collect(state, 15)
+    replacement = RolloutWorker(ReachOrigin, MLPAgent, n_envs=2, seed=11)
+    replacement.reseed(1, [0, 0])
+    again = replacement.collect(state, 15)
+    np.testing.assert_array_equal(again.observations["obs"][0], first.observations["obs"][0])
+    assert second.dones.sum() == 2 and again.dones.sum() == 0  # the episodes start again instead of ending
+
+
+def test_a_worker_that_keeps_dying_stops_the_run_with_one_clear_line(backend, tmp_path):
+    trigger = tmp_path / "abort"
+    trigger.touch()
+    faulty = {"fault": "abort", "at_step": 3, "trigger": str(trigger), "once": False}
+    workers = make_workers(worker_kwargs(faulty=faulty), 2, backend, max_failures=2)
+    with pytest.raises(RuntimeError) as raised:
+        collect_iterations(workers, 1, 10)
+    message = str(raised.value)
+    assert "\n" not in message and workers.restarts == 1
+    assert message.startswith("rollout worker 0 ") and "during collect at iteration 0: 2 failures in a row" in message
+    assert message.endswith("Continue the run from its last checkpoint with --resume=true.")
+    if backend == "process":
+        assert "died with exit code -6 (SIGABRT)" in message
+
+
+def _descendants(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError):
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            children.setdefault(parent, []).append(int(stat.parent.name))
+    found, frontier = [], [pid]
+    while frontier:
+        below = children.get(frontier.pop(), [])
+        found += below
+        frontier += below
+    return found
+
+
+def rollout_worker_pids(run_pid: int, backend: str) -> list[int]:
+    pids = []
+    for pid in set(_descendants(run_pid)):
+        with contextlib.suppress(OSError):
+            command = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+            if ("spawn_main" in command) if backend == "process" else command.startswith("ray::RolloutWorker"):
+                pids.append(pid)
+    return pids
+
+
+def finetune_args(dataset_root: Path, output_dir: Path, backend: str) -> list[str]:
+    """Ten iterations of one whole 40-step episode in each of two workers."""
+    return [f"--dataset.repo_id=local/{dataset_root.name}", f"--dataset.root={dataset_root}",
+            "--env.type=bcrl_lift", "--env.episode_length=40", "--total_env_steps=800", "--policy.type=bcrl",
+            "--policy.push_to_hub=false", f"--rollout.backend={backend}", "--rollout.n_workers=2",
+            "--rollout.envs_per_worker=1", "--rollout.steps_per_env=40", "--ppo.minibatch_size=40",
+            "--bc_batch_size=16", "--ppo.update_epochs=1", "--save_freq=800", "--eval_freq=0",
+            "--final_eval_episodes=2", "--tensorboard=false", f"--output_dir={output_dir}"]
+
+
+@pytest.mark.slow
+def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, tmp_path):
+    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes."""
+    run = subprocess.Popen([str(BIN / "bcrl-finetune"), *finetune_args(lowdim_dataset_root, tmp_path, backend)],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ.copy())
+    try:
+        logs = tmp_path / "logs.csv"
+        deadline = time.time() + 300
+        logged = lambda: logs.exists() and len(logs.read_text().splitlines()) > 1  # noqa: E731
+        while run.poll() is None and time.time() < deadline and not logged():
+            time.sleep(0.1)  # the first iteration is logged: the workers are running
+        workers = rollout_worker_pids(run.pid, backend)
+        assert run.poll() is None and len(workers) == 2, workers
+        os.kill(workers[0], signal.SIGKILL)
+        output, _ = run.communicate(timeout=300)
+    finally:
+        run.kill()
+    assert run.returncode == 0, output[-3000:]
+    (warning,) = [line for line in output.splitlines() if "replacing it" in line]
+    assert "rollout worker 0 " in warning and "during collect at iteration" in warning
+    if backend == "process":
+        assert "died with exit code -9 (SIGKILL: out of memory?)" in warning
+    rows = list(csv.DictReader(logs.open()))
+    assert [int(r["env_steps"]) for r in rows] == list(range(80, 801, 80))
+    assert int(rows[-1]["worker_restarts"]) == 1
+    assert len(json.loads((tmp_path / "eval_final.json").read_text())["episodes"]) == 2
