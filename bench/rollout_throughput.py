@@ -1,11 +1,20 @@
-"""Rollout throughput of bcrl-finetune's workers with 1, 2, 4 subprocesses against a single env in this process,
-and the share of a PPO iteration's wall time spent in simulation vs learning. Prints one JSON line."""
+"""Rollout throughput of bcrl-finetune's workers, one JSON line per backend: a single env in this process (the
+baseline), then 1, 2, 4 workers as subprocesses and as Ray actors (a Ray on loopback, started here): env steps/s,
+the scaling against the single env, and each backend's fixed cost per iteration (a 1-step collect: weights out,
+trajectories back). The process line adds the share of a PPO iteration spent simulating vs learning.
+
+`--ray_cluster` instead starts a two-node Ray cluster on this machine (`ray start --head` and `ray start
+--address=...`, one CPU each, on loopback addresses), collects with one actor per node through `ray_address`, prints
+one JSON line, and stops both nodes."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from functools import partial
@@ -15,6 +24,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch  # noqa: E402
+
+CLUSTER_PORT = 6390
+HEAD_IP, SECOND_NODE_IP = "127.0.0.2", "127.0.0.3"  # loopback addresses Ray does not swap for the machine's
 
 
 def build_policy_dir(tmp: Path, dataset_root: str | None) -> Path:
@@ -32,56 +44,145 @@ def build_policy_dir(tmp: Path, dataset_root: str | None) -> Path:
     return tmp / "policy"
 
 
+def worker_kwargs(policy_dir: Path, n_workers: int, envs_per_worker: int) -> list[dict]:
+    from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
+    from lerobot_bcrl.rl.agent import BCRLAgent
+    from lerobot_bcrl.rl.rollout import make_gym_env
+
+    env_cfg = LiftEnvConfig(obs_type="agent_pos")
+    files = {path.name: path.read_bytes() for path in policy_dir.iterdir()}  # as bcrl-finetune sends them
+    return [{"make_env": partial(make_gym_env, env_cfg.gym_id, env_cfg.gym_kwargs),
+             "make_agent": partial(BCRLAgent.from_files, files), "n_envs": envs_per_worker, "seed": i}
+            for i in range(n_workers)]
+
+
+def measure(workers, state: dict, n_envs: int, steps_per_env: int) -> tuple[float, float, object]:
+    """Env steps/s of one `steps_per_env` collect, the median wall time (s) of five 1-step collects, and the
+    trajectories of the long one."""
+    workers.collect(state, 5)  # warm-up: imports, first steps of each env
+    start = time.perf_counter()
+    trajectories = workers.collect(state, steps_per_env)
+    steps_per_s = n_envs * steps_per_env / (time.perf_counter() - start)
+    one_step_s = []
+    for _ in range(5):
+        start = time.perf_counter()
+        workers.collect(state, 1)
+        one_step_s.append(time.perf_counter() - start)
+    return steps_per_s, statistics.median(one_step_s), trajectories
+
+
+def learning_share(policy_dir: Path, trajectories, collect_s: float) -> dict:
+    """One PPO update on a rollout: the learning side of an iteration, against the collect's wall time."""
+    from lerobot_bcrl.rl.agent import BCRLAgent
+    from lerobot_bcrl.rl.ppo import PPOConfig, ppo_update
+    from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
+
+    agent = BCRLAgent.from_pretrained(policy_dir)
+    optimizer = torch.optim.Adam(agent.module.parameters(), lr=3e-5)
+    start = time.perf_counter()
+    ppo_update(agent, optimizer, trajectories, trajectories.rewards, PPOConfig(minibatch_size=128),
+               ScheduleConfig(type="constant", constant_theta=0.0), ScheduleState())
+    learn_s = time.perf_counter() - start
+    return {"simulation_share": round(collect_s / (collect_s + learn_s), 3),
+            "learning_share": round(learn_s / (collect_s + learn_s), 3)}
+
+
+def backends(args, policy_dir: Path) -> None:
+    from lerobot_bcrl.rl.rollout import InlineWorkers, make_workers
+
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # this Ray stays on loopback
+    import ray
+
+    single = InlineWorkers(worker_kwargs(policy_dir, 1, 1))
+    state = single.workers[0].agent.module.state_dict()
+    single_sps, single_overhead_s, _ = measure(single, state, 1, args.steps_per_env)
+    single.close()
+    common = {"bench": "rollout_throughput", "cpu_count": os.cpu_count(), "steps_per_env": args.steps_per_env,
+              "envs_per_worker": args.envs_per_worker}
+    print(json.dumps({**common, "backend": "single_env", "steps_per_s": round(single_sps, 1),
+                      "one_step_collect_ms": round(1000 * single_overhead_s, 1)}), flush=True)
+
+    ray.init(address="local", num_cpus=max(args.workers), _node_ip_address="127.0.0.1", include_dashboard=False)
+    for backend in ("process", "ray"):
+        result = {**common, "backend": backend}
+        for n in args.workers:
+            workers = make_workers(worker_kwargs(policy_dir, n, args.envs_per_worker), n, backend)
+            try:
+                sps, one_step_s, trajectories = measure(workers, state, n * args.envs_per_worker, args.steps_per_env)
+            finally:
+                workers.close()
+            result[f"workers_{n}_steps_per_s"] = round(sps, 1)
+            result[f"workers_{n}_scaling"] = round(sps / single_sps, 2)
+            # the fixed cost of an iteration beyond the single env's: weights out, trajectories back
+            result[f"workers_{n}_overhead_ms_per_iteration"] = round(1000 * (one_step_s - single_overhead_s), 1)
+            if backend == "process" and n == args.workers[0]:
+                result.update(learning_share(policy_dir, trajectories, n * args.envs_per_worker * args.steps_per_env / sps))
+        print(json.dumps(result), flush=True)
+    ray.shutdown()
+
+
+def ray_cluster(args, policy_dir: Path) -> None:
+    """Two nodes of one CPU each, on loopback, with token authentication (Ray listens on every interface as soon as
+    it is multi-node); each `ray start --block` is stopped by its pid, which stops the node's processes."""
+    ray_bin = str(Path(sys.executable).parent / "ray")
+    env = {**os.environ, "RAY_AUTH_MODE": "token"}
+    env.pop("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", None)
+    os.environ.update(RAY_AUTH_MODE="token")
+    if not (Path.home() / ".ray" / "auth_token").exists():
+        subprocess.run([ray_bin, "get-auth-token", "--generate"], env=env, check=True, capture_output=True)
+    address = f"{HEAD_IP}:{CLUSTER_PORT}"
+    common = ["--num-cpus=1", "--disable-usage-stats", "--block"]
+    nodes = [subprocess.Popen([ray_bin, "start", "--head", f"--node-ip-address={HEAD_IP}", f"--port={CLUSTER_PORT}",
+                               "--include-dashboard=false", *common], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)]
+    try:
+        import ray
+
+        time.sleep(10)  # the head's GCS is up
+        nodes.append(subprocess.Popen([ray_bin, "start", f"--address={address}", f"--node-ip-address={SECOND_NODE_IP}",
+                                       *common], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        ray.init(address=address, _node_ip_address=HEAD_IP)
+        deadline = time.time() + 120
+        while len([n for n in ray.nodes() if n["Alive"]]) < 2 and time.time() < deadline:
+            time.sleep(1)
+        from lerobot_bcrl.rl.agent import BCRLAgent
+        from lerobot_bcrl.rl.rollout import make_workers
+
+        workers = make_workers(worker_kwargs(policy_dir, 2, args.envs_per_worker), 2, "ray", ray_address=address)
+        try:
+            state = BCRLAgent.from_pretrained(policy_dir).module.state_dict()
+            sps, one_step_s, _ = measure(workers, state, 2 * args.envs_per_worker, args.steps_per_env)
+            actor_nodes = ray.get([a.__ray_call__.remote(lambda _: ray.get_runtime_context().get_node_id())
+                                   for a in workers.actors])
+        finally:
+            workers.close()
+        node_ips = {n["NodeID"]: n["NodeManagerAddress"] for n in ray.nodes()}
+        print(json.dumps({"bench": "rollout_throughput_ray_cluster", "nodes": sorted(set(node_ips.values())),
+                          "actor_node_ips": [node_ips[node] for node in actor_nodes], "workers": 2,
+                          "envs_per_worker": args.envs_per_worker, "steps_per_env": args.steps_per_env,
+                          "steps_per_s": round(sps, 1), "one_step_collect_ms": round(1000 * one_step_s, 1)}))
+        ray.shutdown()
+    finally:
+        for node in reversed(nodes):
+            node.terminate()
+            node.wait(timeout=60)
+        # what `ray stop` also removes: else a later `ray.init()` on this machine looks for this cluster
+        latest = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"
+        if latest.exists() and latest.read_text().strip() == address:
+            latest.unlink()
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps_per_env", type=int, default=200)
     parser.add_argument("--envs_per_worker", type=int, default=1)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
+    parser.add_argument("--ray_cluster", action="store_true", help="the two-node cluster check instead")
     args = parser.parse_args()
     torch.set_num_threads(1)
-
-    from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
-    from lerobot_bcrl.rl.agent import BCRLAgent
-    from lerobot_bcrl.rl.ppo import PPOConfig, ppo_update
-    from lerobot_bcrl.rl.rollout import InlineWorkers, ProcessWorkers, make_gym_env
-    from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
-
-    env_cfg = LiftEnvConfig(obs_type="agent_pos")
     with tempfile.TemporaryDirectory() as tmp:
         policy_dir = build_policy_dir(Path(tmp), None)
-        kwargs = lambda i: {"make_env": partial(make_gym_env, env_cfg.gym_id, env_cfg.gym_kwargs),  # noqa: E731
-                            "make_agent": partial(BCRLAgent.from_pretrained, policy_dir),
-                            "n_envs": args.envs_per_worker, "seed": i}
-        # Baseline: the same worker code, one env, in this process (simulation + policy forward per step).
-        single = InlineWorkers([{**kwargs(0), "n_envs": 1}])
-        state = single.workers[0].agent.module.state_dict()
-        single.collect(state, 5)
-        start = time.perf_counter()
-        single.collect(state, args.steps_per_env)
-        single_sps = args.steps_per_env / (time.perf_counter() - start)
-        single.close()
-
-        result = {"bench": "rollout_throughput", "cpu_count": os.cpu_count(), "single_env_steps_per_s": round(single_sps, 1)}
-        for n in args.workers:
-            workers = ProcessWorkers([kwargs(i) for i in range(n)])
-            workers.collect(state, 5)  # warm-up: imports, first render of each env
-            start = time.perf_counter()
-            trajectories = workers.collect(state, args.steps_per_env)
-            collect_s = time.perf_counter() - start
-            sps = n * args.envs_per_worker * args.steps_per_env / collect_s
-            result[f"workers_{n}_steps_per_s"] = round(sps, 1)
-            result[f"workers_{n}_scaling"] = round(sps / single_sps, 2)
-            if n == args.workers[0]:  # one PPO update on this rollout: the learning side of an iteration
-                agent = BCRLAgent.from_pretrained(policy_dir)
-                optimizer = torch.optim.Adam(agent.module.parameters(), lr=3e-5)
-                start = time.perf_counter()
-                ppo_update(agent, optimizer, trajectories, trajectories.rewards, PPOConfig(minibatch_size=128),
-                           ScheduleConfig(type="constant", constant_theta=0.0), ScheduleState())
-                learn_s = time.perf_counter() - start
-                result["simulation_share"] = round(collect_s / (collect_s + learn_s), 3)
-                result["learning_share"] = round(learn_s / (collect_s + learn_s), 3)
-            workers.close()
-    print(json.dumps(result))
+        (ray_cluster if args.ray_cluster else backends)(args, policy_dir)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
+from safetensors.torch import load_file
 from test_rl_learns import MLPAgent, ReachOrigin
 
 from lerobot_bcrl.rl.rollout import InlineWorkers, RolloutWorker, Trajectories, make_workers
@@ -76,7 +77,7 @@ def assert_same(a: list[Trajectories], b: list[Trajectories]) -> None:
 def ray_session():
     ray = pytest.importorskip("ray")
     tests = str(Path(__file__).parent)  # the actors unpickle this module's envs and agent
-    ray.init(num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False,
+    ray.init(address="local", num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False,
              runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}})
     yield ray
     ray.shutdown()
@@ -189,9 +190,18 @@ def finetune_args(dataset_root: Path, output_dir: Path, backend: str) -> list[st
             "--final_eval_episodes=2", "--tensorboard=false", f"--output_dir={output_dir}"]
 
 
+@pytest.fixture(scope="module")
+def unfaulted_run(lowdim_dataset_root, tmp_path_factory) -> Path:
+    output_dir = tmp_path_factory.mktemp("unfaulted")
+    subprocess.run([str(BIN / "bcrl-finetune"), *finetune_args(lowdim_dataset_root, output_dir, "process")],
+                   check=True, capture_output=True, timeout=300, env=os.environ.copy())
+    return output_dir
+
+
 @pytest.mark.slow
-def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, tmp_path):
-    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes."""
+def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, unfaulted_run, tmp_path):
+    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes with the
+    weights and final evaluation of an unfaulted run on the process backend (its iterations hold whole episodes)."""
     run = subprocess.Popen([str(BIN / "bcrl-finetune"), *finetune_args(lowdim_dataset_root, tmp_path, backend)],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ.copy())
     try:
@@ -214,4 +224,9 @@ def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_
     rows = list(csv.DictReader(logs.open()))
     assert [int(r["env_steps"]) for r in rows] == list(range(80, 801, 80))
     assert int(rows[-1]["worker_restarts"]) == 1
-    assert len(json.loads((tmp_path / "eval_final.json").read_text())["episodes"]) == 2
+    weights = "checkpoints/last/pretrained_model/model.safetensors"
+    faulted = load_file(tmp_path / weights)
+    for name, tensor in load_file(unfaulted_run / weights).items():
+        np.testing.assert_array_equal(tensor.numpy(), faulted[name].numpy(), err_msg=name)
+    results = [json.loads((run_dir / "eval_final.json").read_text()) for run_dir in (tmp_path, unfaulted_run)]
+    assert len(results[0]["episodes"]) == 2 and results[0]["episodes"] == results[1]["episodes"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import tempfile
 from pathlib import Path
 from typing import Protocol
 
@@ -76,6 +77,14 @@ class BCRLAgent:
             preprocessor_overrides={"device_processor": {"device": "cpu"}},
         )
         return cls(policy.to("cpu"), preprocessor)
+
+    @classmethod
+    def from_files(cls, files: dict[str, bytes]) -> BCRLAgent:
+        """`from_pretrained` on a saved policy's files sent as bytes: a Ray node need not see the learner's disk."""
+        with tempfile.TemporaryDirectory() as folder:
+            for name, data in files.items():
+                (Path(folder) / name).write_bytes(data)
+            return cls.from_pretrained(folder)
 
     def state_dict(self) -> dict[str, Tensor]:
         return self.policy.state_dict()

@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import io
 from functools import partial
-from pathlib import Path
 
 import torch
 
@@ -39,20 +38,22 @@ def reset_exploration_std(policy, log_std: float) -> None:
 
 
 def start_workers(cfg, policy, preprocessor, postprocessor, seed: int) -> RolloutWorkers:
-    """Rollout workers that load the policy's config and processors once from `<output_dir>/rollout_policy`;
-    weights travel with every request. A low-dim policy's envs skip the camera (3x faster)."""
+    """Rollout workers that load the policy's config and processors once, from the files saved in
+    `<output_dir>/rollout_policy` and sent along (no shared disk needed); weights travel with every request. A
+    low-dim policy's envs skip the camera (3x faster)."""
     policy_dir = cfg.output_dir / ROLLOUT_POLICY_DIR
     for part in (policy, preprocessor, postprocessor):
         part.save_pretrained(policy_dir)
     gym_kwargs = dict(cfg.env.gym_kwargs)
     if not policy.config.uses_images:
         gym_kwargs["obs_type"] = "agent_pos"
+    policy_files = {path.name: path.read_bytes() for path in sorted(policy_dir.iterdir())}  # a cluster's nodes too
     eval_gym_kwargs = {**gym_kwargs, "rerun_dir": str(cfg.output_dir / "eval_rrd")} if cfg.eval_rerun else gym_kwargs
     worker_kwargs = [
         {
             "make_env": partial(make_gym_env, cfg.env.gym_id, gym_kwargs),
             "make_eval_env": partial(make_gym_env, cfg.env.gym_id, eval_gym_kwargs),
-            "make_agent": partial(BCRLAgent.from_pretrained, Path(policy_dir)),
+            "make_agent": partial(BCRLAgent.from_files, policy_files),
             "n_envs": cfg.rollout.envs_per_worker,
             "seed": seed + 7919 * i,
         }

@@ -457,9 +457,10 @@ class RayWorkers(RestartingWorkers):
         ray = _ray()
         self.started_ray = not ray.is_initialized()
         if self.started_ray:
-            local = {"num_cpus": max(os.cpu_count() or 1, len(worker_kwargs)), "_node_ip_address": "127.0.0.1",
-                     "include_dashboard": False}
-            ray.init(address=address, log_to_driver=True, **({} if address else local))
+            # "local": a new Ray even where `ray start` left one running, which `ray.init()` would join
+            local = {"address": "local", "num_cpus": max(os.cpu_count() or 1, len(worker_kwargs)),
+                     "_node_ip_address": "127.0.0.1", "include_dashboard": False}
+            ray.init(**({"address": address} if address else local))
         actor_class = ray.remote(num_cpus=1, max_restarts=-1)(RolloutWorker)
         self.actors = [actor_class.remote(**kwargs) for kwargs in worker_kwargs]
         self.pending: list = [None] * len(worker_kwargs)
