@@ -462,7 +462,10 @@ class RayWorkers(RestartingWorkers):
                      "_node_ip_address": "127.0.0.1", "include_dashboard": False}
             ray.init(**({"address": address} if address else local))
         actor_class = ray.remote(num_cpus=1, max_restarts=-1)(RolloutWorker)
-        self.actors = [actor_class.remote(**kwargs) for kwargs in worker_kwargs]
+        # Put in the object store and held by the pool: Ray restarts an actor from its creation arguments, and frees
+        # a large one it stored itself once the first start has read it ("already deleted by reference counting").
+        self.arguments = [{name: ray.put(value) for name, value in kwargs.items()} for kwargs in worker_kwargs]
+        self.actors = [actor_class.remote(**arguments) for arguments in self.arguments]
         self.pending: list = [None] * len(worker_kwargs)
         super().__init__(worker_kwargs, timeout_s, max_failures)
 
