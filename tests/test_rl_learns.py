@@ -113,25 +113,6 @@ def test_workers_are_reproducible():
     assert np.all((first.truncation_values != 0) == (first.dones == 1))
 
 
-def test_process_workers_match_inline_workers():
-    """The subprocess pool is a drop-in for the in-process one: same seeds, same trajectories and evaluations."""
-    from lerobot_bcrl.rl.rollout import ProcessWorkers
-
-    state = MLPAgent().module.state_dict()
-    kwargs = [{"make_env": ReachOrigin, "make_agent": MLPAgent, "n_envs": 2, "seed": 3 + i} for i in range(2)]
-    inline, processes = InlineWorkers(kwargs), ProcessWorkers(kwargs)
-    try:
-        a, b = inline.collect(state, 25), processes.collect(state, 25)
-        np.testing.assert_array_equal(a.actions, b.actions)
-        np.testing.assert_array_equal(a.rewards, b.rewards)
-        seeds = [10, 11, 12]
-        returns = [e.episode_return for e in inline.evaluate(state, seeds, {"theta_t": 0.5})]
-        assert returns == [e.episode_return for e in processes.evaluate(state, seeds, {"theta_t": 0.5})]
-    finally:
-        inline.close()
-        processes.close()
-
-
 def test_a_dead_worker_is_named_not_a_bare_eof_error():
     """A worker killed mid-run (e.g. by the OOM killer) that may not be replaced (`max_failures=1`) gives an error
     naming it, its exit code and --resume."""
