@@ -231,3 +231,14 @@ def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_
         np.testing.assert_array_equal(tensor.numpy(), faulted[name].numpy(), err_msg=name)
     results = [json.loads((run_dir / "eval_final.json").read_text()) for run_dir in (tmp_path, unfaulted_run)]
     assert len(results[0]["episodes"]) == 2 and results[0]["episodes"] == results[1]["episodes"]
+
+
+def test_rollout_options_refuse_what_they_cannot_do():
+    from lerobot_bcrl.rl.configuration import RolloutConfig
+
+    with pytest.raises(ValueError, match=r"--rollout.backend='dask': choose one of \('process', 'ray'\)"):
+        RolloutConfig(backend="dask")
+    with pytest.raises(ValueError, match="give --rollout.n_workers >= 1"):
+        RolloutConfig(backend="ray", n_workers=0)
+    with pytest.raises(ValueError, match="--rollout.ray_address is for --rollout.backend=ray"):
+        RolloutConfig(ray_address="10.0.0.1:6379")
