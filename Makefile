@@ -30,6 +30,7 @@ test-fast: setup
 bench: setup
 	$(PY) bench/env_throughput.py
 	OMP_NUM_THREADS=1 $(PY) bench/rollout_throughput.py
+	OMP_NUM_THREADS=1 $(PY) bench/rollout_throughput.py --ray_cluster
 	OMP_NUM_THREADS=1 $(PY) bench/worker_memory.py
 	@echo "BC throughput needs a dataset: $(PY) bench/bc_throughput.py --root=<bcrl-record dataset>; conversion: $(PY) bench/convert_speed.py"
 

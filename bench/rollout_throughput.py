@@ -116,7 +116,8 @@ def backends(args, policy_dir: Path) -> None:
             # the fixed cost of an iteration beyond the single env's: weights out, trajectories back
             result[f"workers_{n}_overhead_ms_per_iteration"] = round(1000 * (one_step_s - single_overhead_s), 1)
             if backend == "process" and n == args.workers[0]:
-                result.update(learning_share(policy_dir, trajectories, n * args.envs_per_worker * args.steps_per_env / sps))
+                collect_s = n * args.envs_per_worker * args.steps_per_env / sps
+                result.update(learning_share(policy_dir, trajectories, collect_s))
         print(json.dumps(result), flush=True)
     ray.shutdown()
 
