@@ -52,10 +52,13 @@ def demonstrators(repo_id: str, root: str) -> dict:
     if "planned_miss" in episodes.column_names and not np.all(episodes["planned_miss"]):
         keep = ~np.asarray(episodes["planned_miss"], dtype=bool)
     returns = np.asarray(episodes["episode_return"], dtype=float)[keep]
-    sigma = float(np.mean(episodes["noise_std"])) if "noise_std" in episodes.column_names else float("nan")
+    noise_std = np.asarray(episodes["noise_std"], dtype=float) if "noise_std" in episodes.column_names else np.full(1, np.nan)
+    sigma = float(np.mean(noise_std))
+    # several demonstrators of different noise (configs/record_operator_mix.yaml): their range, not a mean
+    sigma_label = f"{sigma:g}" if np.ptp(noise_std) == 0 or np.isnan(sigma) else f"{noise_std.min():g}-{noise_std.max():g} (mix)"
     success = np.asarray(episodes["success"], dtype=bool)[keep] if "success" in episodes.column_names else None
     mean, ci = mean_ci95(list(returns))
-    return {"sigma": sigma, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
+    return {"sigma": sigma, "sigma_label": sigma_label, "demo_return": mean, "demo_return_ci95": ci, "demo_episodes": len(returns),
             "demo_success": float(np.mean(success)) if success is not None else float("nan")}
 
 
@@ -187,14 +190,14 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
     lines = []
     for title, demo_columns, first_columns, cell_text in (
         ("Table 1: mean return (95 % CI; over several runs: their mean and sd), sparse reward, horizon 200 (max 450)",
-         ["sigma", "demonstrators"], lambda demo: [f"{demo['sigma']:g}", fmt(demo, "demo_return")], return_cell),
+         ["sigma", "demonstrators"], lambda demo: [demo['sigma_label'], fmt(demo, "demo_return")], return_cell),
         ("Table 2: % of the demonstrators' return recovered (over several runs: their mean, min-max)",
-         ["sigma"], lambda demo: [f"{demo['sigma']:g}"], recovered_cell),
+         ["sigma"], lambda demo: [demo['sigma_label']], recovered_cell),
         ("Table 3: success (95 % Wilson interval; over several runs: their mean, and each run's)",
-         ["sigma", "demonstrators"], lambda demo: [f"{demo['sigma']:g}", f"{100 * demo['demo_success']:.0f} %"],
+         ["sigma", "demonstrators"], lambda demo: [demo['sigma_label'], f"{100 * demo['demo_success']:.0f} %"],
          success_table_cell),
         ("Table 4: episodes that lifted the cube and lost it again; the return this cost per episode (% of the "
-         "demonstrators' return); over several runs: their mean", ["sigma"], lambda demo: [f"{demo['sigma']:g}"],
+         "demonstrators' return); over several runs: their mean", ["sigma"], lambda demo: [demo['sigma_label']],
          lost_after_lift_cell),
     ):
         lines += ([title, ""] if not lines else ["", title, ""])
@@ -212,7 +215,7 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
             seed = f"{seed} (BC {r['bc_seed']})"
         steps = r["env_steps"] if r.get("selected_env_steps") is None else f"{r['env_steps']} (chosen: {r['selected_env_steps']})"
         to_lift = "-" if math.isnan(r["steps_to_lift"]) else f"{r['steps_to_lift']:.1f}"  # no episode lifted
-        lines.append(f"| {r['sigma']:g} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
+        lines.append(f"| {r['sigma_label']} | {r['method']} | {steps} | {seed} | {r['episodes']} | {fmt(r, 'return')} |"
                      f" {r['recovered_pct']:.0f} % | {success_cell(r['success'], r['success_ci95'])} |"
                      f" {to_lift} | {r['lost_after_lift']}, {r['return_lost_after_lift']:.1f} | `{r['run']}` |")
     cell_list = [{"sigma": dataset[0], "dataset_root": dataset[1], "method": key[0], "env_steps": key[1],
@@ -288,8 +291,8 @@ def plot_runs(runs: list[tuple[str, dict[str, np.ndarray]]], output_dir: Path, s
 def plot_label(row: dict, rows: list[dict]) -> str:
     """Method and sigma; the seed too where other runs would carry the same label, and the BC checkpoint's
     training seed where runs of one seed started from different BC checkpoints."""
-    label = f"{row['method']} sigma={row['sigma']:g}"
-    twins = [r for r in rows if (r["method"], r["sigma"]) == (row["method"], row["sigma"])]
+    label = f"{row['method']} sigma={row['sigma_label']}"
+    twins = [r for r in rows if (r["method"], r["sigma_label"]) == (row["method"], row["sigma_label"])]
     if len(twins) > 1 and row.get("seed") is not None:
         label += f" seed={row['seed']}"
         if len({r.get("bc_seed") for r in twins if r.get("seed") == row["seed"]}) > 1:

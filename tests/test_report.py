@@ -115,7 +115,7 @@ def test_seeds_share_a_cell_and_budgets_get_their_own_columns(lowdim_dataset_roo
     assert any("| BC+RL | 102400 | 2 |" in line for line in details)
 
 
-def test_demonstrators_return_leaves_out_planned_misses(lowdim_dataset_root, tmp_path):
+def test_demonstrators_leave_out_planned_misses_and_a_mix_shows_its_noise_range(lowdim_dataset_root, tmp_path):
     import shutil
 
     import pandas as pd
@@ -136,6 +136,10 @@ def test_demonstrators_return_leaves_out_planned_misses(lowdim_dataset_root, tmp
     episodes["planned_miss"] = True  # nothing else to compare with: every episode counts
     episodes.to_parquet(path, index=False)
     assert demonstrators("local/with_misses", str(root))["demo_episodes"] == len(episodes)
+    # several demonstrators of different noise: the row names their range, not the mean
+    episodes["noise_std"] = [0.02] + [0.1] * (len(episodes) - 1)
+    episodes.to_parquet(path, index=False)
+    assert demonstrators("local/with_misses", str(root))["sigma_label"] == "0.02-0.1 (mix)"
 
 
 def test_trailing_mean_matches_a_loop():
@@ -214,9 +218,9 @@ def test_details_name_the_bc_checkpoints_training_seed(lowdim_dataset_root, tmp_
 
 
 def test_plot_labels_tell_runs_apart_by_seed_and_then_by_bc_seed():
-    def row(seed, bc_seed, sigma=0.0):
-        return {"method": "BC+RL", "sigma": sigma, "seed": seed, "bc_seed": bc_seed}
-    rows = [row(1000, 1000), row(1000, 3), row(2, 3), row(1000, 3, sigma=0.1)]
+    def row(seed, bc_seed, sigma="0"):
+        return {"method": "BC+RL", "sigma_label": sigma, "seed": seed, "bc_seed": bc_seed}
+    rows = [row(1000, 1000), row(1000, 3), row(2, 3), row(1000, 3, sigma="0.1")]
     labels = [plot_label(r, rows) for r in rows]
     assert labels == ["BC+RL sigma=0 seed=1000 BC seed=1000", "BC+RL sigma=0 seed=1000 BC seed=3",
                       "BC+RL sigma=0 seed=2", "BC+RL sigma=0.1"]
