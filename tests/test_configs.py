@@ -17,8 +17,7 @@ from lerobot_bcrl.rl.configuration import FinetuneConfig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SIGMAS = ("0", "0.01", "0.1")  # the paper's demonstrators
-BCRL_CONFIGS = {"bcrl_lift_lowdim_best_validation.json": "agent_pos", "bcrl_lift_lowdim_demo.json": "agent_pos",
-                "bcrl_lift_images.json": "pixels_agent_pos"}
+BCRL_CONFIGS = {"bcrl_lift_lowdim_best_validation.json": "agent_pos", "bcrl_lift_images.json": "pixels_agent_pos"}
 
 
 def parse(cls, path: Path):
@@ -63,9 +62,9 @@ def test_scratch_configs_have_no_bc_term(mode, obs_type):
     assert cfg.schedule.type == "constant" and cfg.schedule.constant_theta == 0.0
 
 
-def test_the_recipe_config_chooses_its_result_on_validation_with_a_floor_under_theta():
+def test_the_recipe_config_chooses_its_result_on_validation_and_decays_theta_to_zero():
     cfg = parse(FinetuneConfig, CONFIGS / "bcrl_lift_lowdim_best_validation.json")
-    assert cfg.select == "best_validation" and cfg.schedule.theta_min == 0.2
+    assert cfg.select == "best_validation" and cfg.schedule.theta_min == 0.0
     assert cfg.ppo.term_weighting == "gradient_share" and cfg.final_eval_episodes >= 50
     assert cfg.eval_episodes >= 20
 
