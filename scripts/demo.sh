@@ -48,11 +48,9 @@ $BIN/bcrl-finetune --config_path=configs/bcrl_lift_lowdim_best_validation.json -
 $BIN/bcrl-finetune --config_path=configs/bcrl_lift_lowdim_best_validation.json --policy.path="$BC_CKPT" $DATASET \
   --eval_freq=25600 --total_env_steps="$RL_STEPS" --final_eval_episodes="$EVAL_EPISODES" --seed="$SEED" --output_dir="$OUT/bcrl"
 
-stage "4/5 evaluate the fine-tuned checkpoint with the unmodified lerobot-eval"
-RESULT="$OUT/bcrl/checkpoints/best"   # the validation choice (select: best_validation), else the last checkpoint
-[ -d "$RESULT" ] || RESULT="$OUT/bcrl/checkpoints/last"
+stage "4/5 evaluate the checkpoint the validation chose (checkpoints/best) with the unmodified lerobot-eval"
 run_logged "$OUT/logs/lerobot_eval.log" \
-  $BIN/lerobot-eval --policy.path="$RESULT/pretrained_model" --env.type=bcrl_lift \
+  $BIN/lerobot-eval --policy.path="$OUT/bcrl/checkpoints/best/pretrained_model" --env.type=bcrl_lift \
   --env.obs_type=agent_pos --eval.n_episodes=4 --eval.batch_size=1 --eval.use_async_envs=false \
   --policy.device=cpu --output_dir="$OUT/eval"
 $BIN/python - "$OUT/eval" <<'PY'
