@@ -172,9 +172,32 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
-def rollout_worker_pids(run_pid: int, backend: str) -> list[int]:
+# 127.0.0.1, ::1 and ::ffff:127.0.0.1 as /proc/net/tcp{,6} write them
+LOOPBACK = {"0100007F", "00000000000000000000000001000000", "0000000000000000FFFF00000100007F"}
+
+
+def listening_addresses(pids: list[int]) -> set[str]:
+    """The local addresses on which the processes `pids` listen for TCP connections (/proc/net/tcp's hex)."""
+    sockets = set()
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                with contextlib.suppress(OSError):
+                    link = os.readlink(fd)
+                    if link.startswith("socket:["):
+                        sockets.add(link[len("socket:["):-1])
+    addresses = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for fields in (line.split() for line in Path(table).read_text().splitlines()[1:]):
+            if fields[3] == "0A" and fields[9] in sockets:  # 0A: LISTEN
+                addresses.add(fields[1].rsplit(":", 1)[0])
+    return addresses
+
+
+def rollout_worker_pids(parent_pid: int, backend: str) -> list[int]:
+    """The rollout workers below `parent_pid` (a run, or a Ray node)."""
     pids = []
-    for pid in set(_descendants(run_pid)):
+    for pid in set(_descendants(parent_pid)):
         with contextlib.suppress(OSError):
             command = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
             if ("spawn_main" in command) if backend == "process" else command.startswith("ray::RolloutWorker"):
@@ -200,38 +223,82 @@ def unfaulted_run(lowdim_dataset_root, tmp_path_factory) -> Path:
     return output_dir
 
 
-@pytest.mark.slow
-def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, unfaulted_run, tmp_path):
-    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes with the
-    weights and final evaluation of an unfaulted run on the process backend (its iterations hold whole episodes)."""
-    run = subprocess.Popen([str(BIN / "bcrl-finetune"), *finetune_args(lowdim_dataset_root, tmp_path, backend)],
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ.copy())
+def run_with_a_fault(args: list[str], output_dir: Path, fault) -> str:
+    """`bcrl-finetune args`, with `fault(run)` once its first iteration is logged (the workers are running); its
+    output, the run having ended with exit code 0."""
+    run = subprocess.Popen([str(BIN / "bcrl-finetune"), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           text=True, env=os.environ.copy())
     try:
-        logs = tmp_path / "logs.csv"
+        logs = output_dir / "logs.csv"
         deadline = time.time() + 300
         logged = lambda: logs.exists() and len(logs.read_text().splitlines()) > 1  # noqa: E731
         while run.poll() is None and time.time() < deadline and not logged():
-            time.sleep(0.1)  # the first iteration is logged: the workers are running
-        workers = rollout_worker_pids(run.pid, backend)
-        assert run.poll() is None and len(workers) == 2, workers
-        os.kill(workers[0], signal.SIGKILL)
+            time.sleep(0.1)
+        assert run.poll() is None, "the run ended before its first iteration was logged"
+        fault(run)
         output, _ = run.communicate(timeout=300)
     finally:
         run.kill()
     assert run.returncode == 0, output[-3000:]
+    return output
+
+
+def assert_replaced_once_and_unchanged(output: str, output_dir: Path, unfaulted_run: Path) -> str:
+    """One worker replaced during a collect, logged, and the weights and final evaluation of the unfaulted run."""
     (warning,) = [line for line in output.splitlines() if "replacing it" in line]
     assert re.search(r"rollout worker [01] .* during collect at iteration \d+; replacing it", warning), warning
-    if backend == "process":
-        assert "died with exit code -9 (SIGKILL: out of memory?)" in warning
-    rows = list(csv.DictReader(logs.open()))
+    rows = list(csv.DictReader((output_dir / "logs.csv").open()))
     assert [int(r["env_steps"]) for r in rows] == list(range(80, 801, 80))
     assert int(rows[-1]["worker_restarts"]) == 1
     weights = "checkpoints/last/pretrained_model/model.safetensors"
-    faulted = load_file(tmp_path / weights)
+    faulted = load_file(output_dir / weights)
     for name, tensor in load_file(unfaulted_run / weights).items():
         np.testing.assert_array_equal(tensor.numpy(), faulted[name].numpy(), err_msg=name)
-    results = [json.loads((run_dir / "eval_final.json").read_text()) for run_dir in (tmp_path, unfaulted_run)]
+    results = [json.loads((run_dir / "eval_final.json").read_text()) for run_dir in (output_dir, unfaulted_run)]
     assert len(results[0]["episodes"]) == 2 and results[0]["episodes"] == results[1]["episodes"]
+    return warning
+
+
+@pytest.mark.slow
+def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, unfaulted_run, tmp_path):
+    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes with the
+    weights and final evaluation of an unfaulted run on the process backend (its iterations hold whole episodes)."""
+
+    def kill_a_worker(run):
+        workers = rollout_worker_pids(run.pid, backend)
+        assert len(workers) == 2, workers
+        os.kill(workers[0], signal.SIGKILL)
+
+    output = run_with_a_fault(finetune_args(lowdim_dataset_root, tmp_path, backend), tmp_path, kill_a_worker)
+    warning = assert_replaced_once_and_unchanged(output, tmp_path, unfaulted_run)
+    if backend == "process":
+        assert "died with exit code -9 (SIGKILL: out of memory?)" in warning
+
+
+@pytest.mark.slow
+def test_bcrl_finetune_goes_on_after_a_ray_node_is_lost(lowdim_dataset_root, unfaulted_run, tmp_path):
+    """A Ray cluster of two nodes on loopback (`ray start --head` of 2 CPUs, `ray start --address=...` of 1) that
+    bcrl-finetune joins with --rollout.ray_address, all of it listening on loopback only: its two actors spread one
+    per node. The second node is lost
+    (its raylet, its actor and every other process of it SIGKILLed at once): Ray restarts the actor on the head,
+    the run re-seeds it where it stood and finishes with the unfaulted run's weights and final evaluation."""
+    pytest.importorskip("ray")
+    from lerobot_bcrl.rl.loopback_cluster import LoopbackCluster
+
+    with LoopbackCluster([2, 1]) as cluster:
+        args = [*finetune_args(lowdim_dataset_root, tmp_path, "ray"), f"--rollout.ray_address={cluster.address}"]
+
+        def lose_the_second_node(run):
+            cluster_pids = [pid for node in cluster.nodes for pid in [node.pid, *_descendants(node.pid)]]
+            listening = listening_addresses(cluster_pids)
+            assert listening and listening <= LOOPBACK, f"Ray listens off loopback: {listening}"
+            on_the_node = rollout_worker_pids(cluster.nodes[1].pid, "ray")
+            assert len(on_the_node) == 1, "SPREAD puts one of the two actors on each node"
+            cluster.lose_node(1)
+
+        output = run_with_a_fault(args, tmp_path, lose_the_second_node)
+    warning = assert_replaced_once_and_unchanged(output, tmp_path, unfaulted_run)
+    assert "died" in warning, warning
 
 
 def test_rollout_options_refuse_what_they_cannot_do():

@@ -445,8 +445,8 @@ def _ray():
 
 class RayWorkers(RestartingWorkers):
     """One `RolloutWorker` per Ray actor (one CPU each), on the cluster at `address` or on a Ray started here. The
-    weights go into Ray's object store once per call; Ray restarts a dead actor (`max_restarts`), and a hung one
-    is killed into a restart."""
+    weights go into Ray's object store once per call; Ray restarts a dead actor (`max_restarts`), on another node
+    where its node was lost, and a hung one is killed into a restart."""
 
     def __init__(self, worker_kwargs: list[dict], address: str | None = None, timeout_s: float = WORKER_TIMEOUT_S,
                  max_failures: int = MAX_WORKER_FAILURES):
@@ -461,7 +461,8 @@ class RayWorkers(RestartingWorkers):
             local = {"address": "local", "num_cpus": max(os.cpu_count() or 1, len(worker_kwargs)),
                      "_node_ip_address": "127.0.0.1", "include_dashboard": False}
             ray.init(**({"address": address} if address else local))
-        actor_class = ray.remote(num_cpus=1, max_restarts=-1)(RolloutWorker)
+        # SPREAD: over the cluster's nodes, so that losing one node loses few workers; Ray restarts those elsewhere
+        actor_class = ray.remote(num_cpus=1, max_restarts=-1, scheduling_strategy="SPREAD")(RolloutWorker)
         # Put in the object store and held by the pool: Ray restarts an actor from its creation arguments, and frees
         # a large one it stored itself once the first start has read it ("already deleted by reference counting").
         self.arguments = [{name: ray.put(value) for name, value in kwargs.items()} for kwargs in worker_kwargs]
