@@ -3,9 +3,9 @@ baseline), then 1, 2, 4 workers as subprocesses and as Ray actors (a Ray on loop
 the scaling against the single env, and each backend's fixed cost per iteration (a 1-step collect: weights out,
 trajectories back). The process line adds the share of a PPO iteration spent simulating vs learning.
 
-`--ray_cluster` instead starts a two-node Ray cluster on this machine (`ray start --head` and `ray start
---address=...`, one CPU each, on loopback addresses), collects with one actor per node through `ray_address`, prints
-one JSON line, and stops both nodes."""
+`--ray_cluster` instead starts a two-node Ray cluster on this machine's loopback (`ray start --head` and `ray start
+--address=...`, one CPU each: `lerobot_bcrl.rl.loopback_cluster`), collects with one actor per node through
+`ray_address`, prints one JSON line, and stops both nodes."""
 
 from __future__ import annotations
 
@@ -13,8 +13,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from functools import partial
@@ -24,9 +22,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch  # noqa: E402
-
-CLUSTER_PORT = 6390
-HEAD_IP, SECOND_NODE_IP = "127.0.0.2", "127.0.0.3"  # loopback addresses Ray does not swap for the machine's
 
 
 def build_policy_dir(tmp: Path, dataset_root: str | None) -> Path:
@@ -123,54 +118,30 @@ def backends(args, policy_dir: Path) -> None:
 
 
 def ray_cluster(args, policy_dir: Path) -> None:
-    """Two nodes of one CPU each, on loopback, with token authentication (Ray listens on every interface as soon as
-    it is multi-node); each `ray start --block` is stopped by its pid, which stops the node's processes."""
-    ray_bin = str(Path(sys.executable).parent / "ray")
-    env = {**os.environ, "RAY_AUTH_MODE": "token"}
-    env.pop("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", None)
-    os.environ.update(RAY_AUTH_MODE="token")
-    if not (Path.home() / ".ray" / "auth_token").exists():
-        subprocess.run([ray_bin, "get-auth-token", "--generate"], env=env, check=True, capture_output=True)
-    address = f"{HEAD_IP}:{CLUSTER_PORT}"
-    common = ["--num-cpus=1", "--disable-usage-stats", "--block"]
-    nodes = [subprocess.Popen([ray_bin, "start", "--head", f"--node-ip-address={HEAD_IP}", f"--port={CLUSTER_PORT}",
-                               "--include-dashboard=false", *common], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)]
-    try:
-        import ray
+    """Two nodes of one CPU each on loopback (`LoopbackCluster`); the actors join through `ray_address`."""
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # this driver joins on loopback
+    import ray
 
-        time.sleep(10)  # the head's GCS is up
-        nodes.append(subprocess.Popen([ray_bin, "start", f"--address={address}", f"--node-ip-address={SECOND_NODE_IP}",
-                                       *common], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        ray.init(address=address, _node_ip_address=HEAD_IP)
-        deadline = time.time() + 120
-        while len([n for n in ray.nodes() if n["Alive"]]) < 2 and time.time() < deadline:
-            time.sleep(1)
-        from lerobot_bcrl.rl.agent import BCRLAgent
-        from lerobot_bcrl.rl.rollout import make_workers
+    from lerobot_bcrl.rl.agent import BCRLAgent
+    from lerobot_bcrl.rl.loopback_cluster import LoopbackCluster
+    from lerobot_bcrl.rl.rollout import make_workers
 
-        workers = make_workers(worker_kwargs(policy_dir, 2, args.envs_per_worker), 2, "ray", ray_address=address)
+    with LoopbackCluster([1, 1]) as cluster:
+        workers = make_workers(worker_kwargs(policy_dir, 2, args.envs_per_worker), 2, "ray",
+                               ray_address=cluster.address)
         try:
             state = BCRLAgent.from_pretrained(policy_dir).module.state_dict()
             sps, one_step_s, _ = measure(workers, state, 2 * args.envs_per_worker, args.steps_per_env)
             actor_nodes = ray.get([a.__ray_call__.remote(lambda _: ray.get_runtime_context().get_node_id())
                                    for a in workers.actors])
+            nodes = {n["NodeID"]: n for n in ray.nodes()}
         finally:
             workers.close()
-        node_ips = {n["NodeID"]: n["NodeManagerAddress"] for n in ray.nodes()}
-        print(json.dumps({"bench": "rollout_throughput_ray_cluster", "nodes": sorted(set(node_ips.values())),
-                          "actor_node_ips": [node_ips[node] for node in actor_nodes], "workers": 2,
-                          "envs_per_worker": args.envs_per_worker, "steps_per_env": args.steps_per_env,
-                          "steps_per_s": round(sps, 1), "one_step_collect_ms": round(1000 * one_step_s, 1)}))
-        ray.shutdown()
-    finally:
-        for node in reversed(nodes):
-            node.terminate()
-            node.wait(timeout=60)
-        # what `ray stop` also removes: else a later `ray.init()` on this machine looks for this cluster
-        latest = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"
-        if latest.exists() and latest.read_text().strip() == address:
-            latest.unlink()
+    print(json.dumps({"bench": "rollout_throughput_ray_cluster", "nodes": len(nodes),
+                      "node_addresses": sorted({n["NodeManagerAddress"] for n in nodes.values()}),
+                      "actor_nodes": [sorted(nodes).index(node) for node in actor_nodes], "workers": 2,
+                      "envs_per_worker": args.envs_per_worker, "steps_per_env": args.steps_per_env,
+                      "steps_per_s": round(sps, 1), "one_step_collect_ms": round(1000 * one_step_s, 1)}))
 
 
 def main() -> None:
