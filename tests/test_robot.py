@@ -14,7 +14,7 @@ from lerobot_bcrl import geometry as G
 from lerobot_bcrl.robot.command import CommandConfig, DeltaActionCommander
 from lerobot_bcrl.robot.kinematics import KinematicsError, UrdfKinematics
 from lerobot_bcrl.robot.mujoco_sawyer import GRIP_SITE_IN_RIGHT_HAND_POS_M, GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW, MujocoSawyer
-from lerobot_bcrl.robot.transport import MujocoSawyerTransport, step
+from lerobot_bcrl.robot.transport import GuardedCommandPath, MujocoSawyerTransport
 
 URDF = Path("/work/shared/robots/sawyer/sawyer.urdf")
 # robosuite's Lift start pose of the arm (its init_qpos), a realistic place to start commanding from
@@ -76,7 +76,7 @@ def test_commanded_deltas_are_reached_in_mujoco(kin, mj):
     transport = MujocoSawyerTransport(mj, data)
     data.qpos[transport.sawyer.arm_qpos_adr] = START_QPOS
     mujoco.mj_kinematics(mj, data)
-    commander = DeltaActionCommander(kin, CommandConfig(fps=30))
+    path = GuardedCommandPath(DeltaActionCommander(kin, CommandConfig(fps=30)), transport)
     pos_err, rot_err = [], []
     for t in range(40):
         phase = 2 * math.pi * t / 40
@@ -84,17 +84,54 @@ def test_commanded_deltas_are_reached_in_mujoco(kin, mj):
         delta_quat = G.rotvec_to_quat(np.array([0.0, 0.5, 1.0]) / math.sqrt(1.25) * (math.pi / 40) * math.sin(phase))
         action = np.concatenate([delta_pos, G.quat_canonical(delta_quat), [1.0 if t > 20 else -1.0]])
         before_pos, before_quat = transport.tool_pose_base()
-        command = step(commander, transport, action)
+        command = path.step(action)
         after_pos, after_quat = transport.tool_pose_base()
         pos_err.append(np.linalg.norm((after_pos - before_pos) - delta_pos))
         achieved = G.quat_multiply(after_quat, G.quat_conjugate(before_quat))
         rot_err.append(G.quat_angle(G.quat_multiply(achieved, G.quat_conjugate(delta_quat))))
-        assert not command.velocity_limited
-    assert transport.gripper_closed
+        assert not command.velocity_limited and command.stopped_because is None
+    assert transport.gripper_closed and path.stops == 0
     # Stated tolerance: 1 mm and 0.01 rad per step (measured 0.017 mm, < 1e-5 rad)
     print(f"max error per step: {max(pos_err) * 1e3:.3f} mm, {max(rot_err):.5f} rad")
     assert max(pos_err) < 1e-3, max(pos_err)
     assert max(rot_err) < 0.01, max(rot_err)
+
+
+class NaNJoints(MujocoSawyerTransport):
+    def read_joint_positions(self):
+        return np.full(7, np.nan)
+
+
+def test_the_watchdog_stops_the_arm_for_a_late_or_non_finite_period(kin, mj):
+    """A late action (after one period), a NaN action and NaN joint readings each give one zero-velocity period
+    with the gripper held; the periods around them move the arm as commanded."""
+    data = mujoco.MjData(mj)
+    transport = MujocoSawyerTransport(mj, data)
+    data.qpos[transport.sawyer.arm_qpos_adr] = START_QPOS
+    mujoco.mj_kinematics(mj, data)
+    now = [100.0]
+    path = GuardedCommandPath(DeltaActionCommander(kin, CommandConfig(fps=20)), transport, clock=lambda: now[0])
+    close_and_lift = np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 1.0, 1.0])
+    open_and_lower = np.array([0.0, 0.0, -0.01, 0.0, 0.0, 0.0, 1.0, -1.0])
+
+    def moved(action, observed_at_s, on=path):
+        before = transport.tool_pose_base()[0]
+        command = on.step(action, observed_at_s)
+        return command, np.linalg.norm(transport.tool_pose_base()[0] - before)
+
+    command, distance = moved(close_and_lift, now[0] - 0.049)  # 49 ms after the observation: on time at 20 Hz
+    assert command.stopped_because is None and distance > 0.009 and transport.gripper_closed
+    command, distance = moved(open_and_lower, now[0] - 0.051)
+    assert "ms after its deadline" in command.stopped_because and distance == 0 and transport.gripper_closed
+    command, distance = moved(np.full(8, np.nan), now[0])
+    assert "the action is not finite" in command.stopped_because and distance == 0
+    blind = GuardedCommandPath(path.commander, NaNJoints(mj, data), clock=lambda: now[0])
+    command, distance = moved(close_and_lift, now[0], on=blind)
+    assert "joint positions read are not finite" in command.stopped_because and distance == 0
+    assert transport.gripper_closed
+    command, distance = moved(open_and_lower, now[0])
+    assert command.stopped_because is None and distance > 0.009 and not transport.gripper_closed
+    assert path.stops == 2 and blind.stops == 1
 
 
 def test_clamps_and_velocity_limits(kin):

@@ -1,7 +1,9 @@
-"""The hardware boundary of the command path: read joints, send joint velocities and the gripper, keep time.
+"""The hardware boundary of the command path: read joints, send joint velocities and the gripper, keep time; and
+the watchdog between the policy and it (`GuardedCommandPath`).
 
 A real rig implements `JointVelocityTransport` in a few lines (Intera: `limb.joint_angles()`,
-`limb.set_joint_velocities()`, `gripper.close()`, a `rospy.Rate`); tests use `MujocoSawyerTransport`.
+`limb.set_joint_velocities()`, `limb.set_command_timeout()`, `gripper.close()`, a `rospy.Rate`); tests use
+`MujocoSawyerTransport`.
 """
 
 from __future__ import annotations
@@ -15,21 +17,55 @@ from lerobot_bcrl.robot.command import DeltaActionCommander, JointCommand
 
 
 class JointVelocityTransport(Protocol):
+    """What a rig implements. `send` holds for one control period: a real transport must also stop the arm by itself
+    when no command comes for longer (Intera: `limb.set_command_timeout`), which covers a policy that never answers."""
+
     def read_joint_positions(self) -> np.ndarray: ...
 
-    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool) -> None: ...
+    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool | None) -> None:
+        """`gripper_closed` None: leave the gripper as it is."""
+        ...
 
     def wait_period(self, period_s: float) -> None:
         """Return at the start of the next control period (a real rig sleeps; a simulator integrates)."""
         ...
 
 
-def step(commander: DeltaActionCommander, transport: JointVelocityTransport, action: np.ndarray) -> JointCommand:
-    """One control period: read, command, send, wait."""
-    command = commander.command(action, transport.read_joint_positions())
-    transport.send(command.joint_vel_rad_s, command.gripper_closed)
-    transport.wait_period(1.0 / commander.cfg.fps)
-    return command
+class GuardedCommandPath:
+    """One control period per `step`: read the joints, turn the action into joint velocities, send, wait. The
+    watchdog: in a period where the action came after its deadline (one period after the observation it answers),
+    or where the action, the joints read or the IK's target are not finite, the arm is sent zero joint velocities
+    and the gripper stays as it was; the step says why, and `stops` counts such periods."""
+
+    def __init__(self, commander: DeltaActionCommander, transport: JointVelocityTransport, clock=time.monotonic):
+        self.commander, self.transport, self.clock = commander, transport, clock
+        self.period_s = 1.0 / commander.cfg.fps
+        self.stops = 0
+
+    def step(self, action: np.ndarray, observed_at_s: float | None = None) -> JointCommand:
+        """`observed_at_s`: the `clock()` time of the observation the action answers (None: no deadline)."""
+        action = np.asarray(action, dtype=np.float64)
+        joint_pos_rad = np.asarray(self.transport.read_joint_positions(), dtype=np.float64)
+        late_s = None if observed_at_s is None else self.clock() - observed_at_s - self.period_s
+        if late_s is not None and late_s > 0:
+            command = self._stop(joint_pos_rad, f"the action came {1000 * late_s:.1f} ms after its deadline")
+        elif not np.all(np.isfinite(action)):
+            command = self._stop(joint_pos_rad, f"the action is not finite: {action.tolist()}")
+        elif not np.all(np.isfinite(joint_pos_rad)):
+            command = self._stop(joint_pos_rad, f"the joint positions read are not finite: {joint_pos_rad.tolist()}")
+        else:
+            command = self.commander.command(action, joint_pos_rad)
+            if not (np.all(np.isfinite(command.joint_vel_rad_s)) and np.all(np.isfinite(command.target_pos_base_m))):
+                command = self._stop(joint_pos_rad, "the IK's target is not finite")
+        self.transport.send(command.joint_vel_rad_s, command.gripper_closed)
+        self.transport.wait_period(self.period_s)
+        return command
+
+    def _stop(self, joint_pos_rad: np.ndarray, reason: str) -> JointCommand:
+        self.stops += 1
+        nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
+        return JointCommand(np.zeros_like(joint_pos_rad), joint_pos_rad, nan3, nan4, gripper_closed=None,
+                            action_clamped=False, velocity_limited=False, stopped_because=reason)
 
 
 class WallClockRate:
@@ -68,9 +104,10 @@ class MujocoSawyerTransport:
     def read_joint_positions(self) -> np.ndarray:
         return self.sawyer.joint_pos_rad(self.data)
 
-    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool) -> None:
+    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool | None) -> None:
         self._joint_vel = np.asarray(joint_vel_rad_s, dtype=np.float64).copy()
-        self.gripper_closed = gripper_closed
+        if gripper_closed is not None:
+            self.gripper_closed = gripper_closed
 
     def wait_period(self, period_s: float) -> None:
         dt = period_s / self.substeps
