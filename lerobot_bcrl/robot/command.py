@@ -26,7 +26,7 @@ class JointCommand:
     target_joint_pos_rad: np.ndarray  # (n,) the IK solution
     target_pos_base_m: np.ndarray
     target_quat_base_xyzw: np.ndarray
-    gripper_closed: bool | None  # None: the gripper left as it is (a watchdog stop)
+    gripper_closed: bool
     action_clamped: bool
     velocity_limited: bool
     stopped_because: str | None = None  # the watchdog's reason for a zero-velocity period (transport.py)

@@ -22,9 +22,7 @@ class JointVelocityTransport(Protocol):
 
     def read_joint_positions(self) -> np.ndarray: ...
 
-    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool | None) -> None:
-        """`gripper_closed` None: leave the gripper as it is."""
-        ...
+    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool) -> None: ...
 
     def wait_period(self, period_s: float) -> None:
         """Return at the start of the next control period (a real rig sleeps; a simulator integrates)."""
@@ -34,12 +32,13 @@ class JointVelocityTransport(Protocol):
 class GuardedCommandPath:
     """One control period per `step`: read the joints, turn the action into joint velocities, send, wait. The
     watchdog: in a period where the action came after its deadline (one period after the observation it answers),
-    or where the action, the joints read or the IK's target are not finite, the arm is sent zero joint velocities
-    and the gripper stays as it was; the step says why, and `stops` counts such periods."""
+    or where the action, the joints read or the IK's solution are not finite, the arm is sent zero joint velocities
+    and the gripper its last command (open before the first); the step says why, and `stops` counts such periods."""
 
     def __init__(self, commander: DeltaActionCommander, transport: JointVelocityTransport, clock=time.monotonic):
         self.commander, self.transport, self.clock = commander, transport, clock
         self.period_s = 1.0 / commander.cfg.fps
+        self.gripper_closed = False  # the last command sent
         self.stops = 0
 
     def step(self, action: np.ndarray, observed_at_s: float | None = None) -> JointCommand:
@@ -55,8 +54,9 @@ class GuardedCommandPath:
             command = self._stop(joint_pos_rad, f"the joint positions read are not finite: {joint_pos_rad.tolist()}")
         else:
             command = self.commander.command(action, joint_pos_rad)
-            if not (np.all(np.isfinite(command.joint_vel_rad_s)) and np.all(np.isfinite(command.target_pos_base_m))):
-                command = self._stop(joint_pos_rad, "the IK's target is not finite")
+            if not np.all(np.isfinite(command.target_joint_pos_rad)):
+                command = self._stop(joint_pos_rad, f"the IK's solution is not finite: {command.target_joint_pos_rad}")
+        self.gripper_closed = command.gripper_closed
         self.transport.send(command.joint_vel_rad_s, command.gripper_closed)
         self.transport.wait_period(self.period_s)
         return command
@@ -64,7 +64,7 @@ class GuardedCommandPath:
     def _stop(self, joint_pos_rad: np.ndarray, reason: str) -> JointCommand:
         self.stops += 1
         nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
-        return JointCommand(np.zeros_like(joint_pos_rad), joint_pos_rad, nan3, nan4, gripper_closed=None,
+        return JointCommand(np.zeros_like(joint_pos_rad), joint_pos_rad, nan3, nan4, self.gripper_closed,
                             action_clamped=False, velocity_limited=False, stopped_because=reason)
 
 
@@ -104,10 +104,9 @@ class MujocoSawyerTransport:
     def read_joint_positions(self) -> np.ndarray:
         return self.sawyer.joint_pos_rad(self.data)
 
-    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool | None) -> None:
+    def send(self, joint_vel_rad_s: np.ndarray, gripper_closed: bool) -> None:
         self._joint_vel = np.asarray(joint_vel_rad_s, dtype=np.float64).copy()
-        if gripper_closed is not None:
-            self.gripper_closed = gripper_closed
+        self.gripper_closed = gripper_closed
 
     def wait_period(self, period_s: float) -> None:
         dt = period_s / self.substeps
