@@ -130,6 +130,27 @@ def test_a_dead_and_a_hung_worker_are_replaced_and_the_run_unchanged_on_whole_ep
     assert_same(collect_iterations(InlineWorkers(worker_kwargs()), 3, EPISODE_STEPS), faulted)
 
 
+def test_a_ray_actor_restarted_between_two_collects_is_reseeded_where_it_stood(ray_session, caplog):
+    """Ray restarts a dead actor by itself (`max_restarts`), so one killed between two calls answers the next from
+    fresh envs; the pool sees the new process, re-seeds it where it stood, and both iterations (whole episodes)
+    equal an unfaulted run's."""
+    ray = ray_session
+    unfaulted = collect_iterations(InlineWorkers(worker_kwargs()), 2, 2 * EPISODE_STEPS)  # = Ray's (test above)
+    workers = make_workers(worker_kwargs(), 2, "ray")
+    state = MLPAgent().module.state_dict()
+    try:
+        first = workers.collect(state, 2 * EPISODE_STEPS)
+        os.kill(ray.get(workers.actors[0].__ray_call__.remote(lambda worker: os.getpid())), signal.SIGKILL)
+        ray.get(workers.actors[0].__ray_ready__.options(max_task_retries=-1).remote(), timeout=120)  # restarted
+        with caplog.at_level(logging.WARNING):
+            second = workers.collect(state, 2 * EPISODE_STEPS)
+    finally:
+        workers.close()
+    assert_same(unfaulted, [first, second])
+    assert workers.restarts == 1
+    assert "rollout worker 0 was restarted by Ray since its last answer" in caplog.text
+
+
 def test_a_worker_reseeded_in_the_middle_of_an_episode_starts_that_episode_again():
     """Iterations of 15 steps on 20-step episodes: a replacement for the second iteration resets each env to the
     episode it was 15 steps into (same seed, same first observation) and plays it from the start."""
@@ -290,7 +311,7 @@ def test_bcrl_finetune_goes_on_after_a_ray_node_is_lost(lowdim_dataset_root, unf
 
         def lose_the_second_node(run):
             cluster_pids = [pid for node in cluster.nodes for pid in [node.pid, *_descendants(node.pid)]]
-            listening = listening_addresses(cluster_pids)
+            listening = listening_addresses([*cluster_pids, run.pid, *_descendants(run.pid)])
             assert listening and listening <= LOOPBACK, f"Ray listens off loopback: {listening}"
             on_the_node = rollout_worker_pids(cluster.nodes[1].pid, "ray")
             assert len(on_the_node) == 1, "SPREAD puts one of the two actors on each node"

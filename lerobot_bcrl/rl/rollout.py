@@ -443,16 +443,27 @@ def _ray():
     return ray
 
 
+def _run_in_actor(worker: RolloutWorker, command: str | None, *args) -> tuple[str, object]:
+    """`worker.command(*args)` (None: nothing, the actor is up) and the id of the process it ran in, which is new
+    after Ray restarted the actor."""
+    import ray
+
+    return ray.get_runtime_context().get_worker_id(), None if command is None else getattr(worker, command)(*args)
+
+
 class RayWorkers(RestartingWorkers):
     """One `RolloutWorker` per Ray actor (one CPU each), on the cluster at `address` or on a Ray started here. The
     weights go into Ray's object store once per call; Ray restarts a dead actor (`max_restarts`), on another node
-    where its node was lost, and a hung one is killed into a restart."""
+    where its node was lost, and a hung one is killed into a restart. Every answer names the process it came from:
+    an actor Ray restarted between two calls (its envs back at their start) is re-seeded like one that died in a
+    call."""
 
     def __init__(self, worker_kwargs: list[dict], address: str | None = None, timeout_s: float = WORKER_TIMEOUT_S,
                  max_failures: int = MAX_WORKER_FAILURES):
-        if address is None and "ray" not in sys.modules:
+        if (address is None or address.startswith("127.0.0.1:")) and "ray" not in sys.modules:
             # Ray resolves 127.0.0.1 to the machine's address and listens on every interface unless multi-node
-            # support is off: a Ray only this run uses stays on loopback.
+            # support is off: a Ray only this run uses stays on loopback, and a loopback cluster
+            # (loopback_cluster.py) is found at 127.0.0.1.
             os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
         ray = _ray()
         self.started_ray = not ray.is_initialized()
@@ -468,14 +479,18 @@ class RayWorkers(RestartingWorkers):
         self.arguments = [{name: ray.put(value) for name, value in kwargs.items()} for kwargs in worker_kwargs]
         self.actors = [actor_class.remote(**arguments) for arguments in self.arguments]
         self.pending: list = [None] * len(worker_kwargs)
+        self.incarnations: list[str | None] = [None] * len(worker_kwargs)  # the process each actor answered from
         super().__init__(worker_kwargs, timeout_s, max_failures)
 
     def _launch(self, index):
         """Ray starts (and restarts) the actor; asked while it restarts, it answers once it is up (the retries)."""
-        self.pending[index] = self.actors[index].__ray_ready__.options(max_task_retries=-1).remote()
+        self.incarnations[index] = None  # its next answer says which process it is
+        self.pending[index] = self.actors[index].__ray_call__.options(max_task_retries=-1).remote(
+            _run_in_actor, None)
 
     def _submit(self, index, command, args):
-        self.pending[index] = getattr(self.actors[index], command).remote(*args)
+        # the arguments one by one: Ray hands an actor the objects behind top-level references only (the weights)
+        self.pending[index] = self.actors[index].__ray_call__.remote(_run_in_actor, command, *args)
 
     def _shared(self, state_dict):
         return _ray().put(super()._shared(state_dict))
@@ -488,11 +503,17 @@ class RayWorkers(RestartingWorkers):
         for ref in ready:
             index = waiting[ref]
             try:
-                results[index] = ray.get(ref)
+                incarnation, answer = ray.get(ref)
             except ray.exceptions.RayTaskError as error:
                 failures[index] = f"raised {type(error.cause).__name__}: {error.cause}"
             except ray.exceptions.RayError as error:
                 failures[index] = f"died ({type(error).__name__}: {str(error).splitlines()[0]})"
+            else:
+                self.incarnations[index] = self.incarnations[index] or incarnation
+                if incarnation == self.incarnations[index]:
+                    results[index] = answer
+                else:
+                    failures[index] = "was restarted by Ray since its last answer (its process or node lost)"
         for ref in not_ready:
             ray.kill(self.actors[waiting[ref]], no_restart=False)
             failures[waiting[ref]] = f"gave no answer in {timeout_s:g} s, killed"
