@@ -35,9 +35,17 @@ class GuardedCommandPath:
     or where the action, the joints read or the IK's solution are not finite, the arm is sent zero joint velocities
     and the gripper its last command (open before the first); the step says why, and `stops` counts such periods."""
 
-    def __init__(self, commander: DeltaActionCommander, transport: JointVelocityTransport, clock=time.monotonic):
+    def __init__(
+        self,
+        commander: DeltaActionCommander,
+        transport: JointVelocityTransport,
+        clock=time.monotonic,
+        period_s: float | None = None,
+    ):
+        """`period_s`: how long each command holds; the commander's (the dataset's) period unless a study of rate
+        mismatch sets another (the commander still scales velocities for its own fps)."""
         self.commander, self.transport, self.clock = commander, transport, clock
-        self.period_s = 1.0 / commander.cfg.fps
+        self.period_s = period_s if period_s is not None else 1.0 / commander.cfg.fps
         self.gripper_closed = False  # the last command sent
         self.stops = 0
 
