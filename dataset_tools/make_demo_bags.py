@@ -1,14 +1,17 @@
 """`bcrl-make-demo-bags`: drive the simulated Sawyer through a reach-and-grasp demo and write it as ROS bags.
 
+The demonstrator drives the arm through robosuite's controller (`--drive=osc`) or, as in a lab, through the real
+robot's command path to the arm under physics (`--drive=command_path`, configs/record_lab_bags.yaml).
+
 Writes what a real Sawyer rig records (joint states ~100 Hz, a camera ~30 Hz with jitter and dropped
 frames, an optional end-effector pose topic) as a ROS 1 bag and a ROS 2 bag (MCAP), plus the ground truth
 (the MuJoCo grip-site pose at every physics step) in an .npz kept aside, so converters can be checked.
 Example: bcrl-make-demo-bags --out_dir=data/demo_bags --n_episodes=2
 """
 
-from __future__ import annotations
-
 import logging
+import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,12 +20,16 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from dataset_tools.experts import ScriptedLiftExpert
+from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
+from lerobot_bcrl import geometry
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.robot.mujoco_sawyer import MujocoSawyer
 from lerobot_bcrl.robot.kinematics import SAWYER_ARM_JOINTS
 
 BAG_START_NS = 1_700_000_000 * 10**9  # an epoch time, as on a real rig
 URDF_FINGER_JOINTS = ("right_gripper_l_finger_joint", "right_gripper_r_finger_joint")
+CLOSE_TIME_S = 0.4  # the demonstrator holds "close" this long before lifting (8 steps at 20 Hz)
 EXTRA_JOINTS = ("head_pan",)  # Intera's joint_states carries the head too; converters must pick by name
 
 
@@ -34,13 +41,24 @@ class DemoTopics:
     gripper_command: str = "/bcrl/gripper_command"  # std_msgs/Float64: the operator's command, +1 closed
 
 
+DRIVES = ("osc", "command_path")
+
+
 @dataclass
 class MakeDemoBagsConfig:
     out_dir: Path = Path("demo_bags")
     n_episodes: int = 1
     seed: int = 0
     formats: list[str] = field(default_factory=lambda: ["ros1", "ros2"])  # ros2 is written as MCAP
-    control_steps: int = 60  # scripted expert steps at 20 Hz (approach, descend, close, lift)
+    # "osc": the scripted expert through robosuite's controller at 20 Hz. "command_path": a lab's recording: the
+    # operator's deltas go through the real robot's command path (IK -> joint velocities at command_fps) to the
+    # arm under physics in joint-velocity mode, so what the arm does is not what was commanded.
+    drive: str = "osc"
+    command_fps: float = 30.0  # drive=command_path: the teleoperation rate
+    urdf: Path | None = None  # drive=command_path: the arm's URDF, for the command path's IK
+    control_steps: int = 60  # the demonstrator's steps (approach, descend, close, lift): 20 Hz or command_fps
+    # The demonstrator's skill and noise (controller units, as in bcrl-record); the default is the plain expert.
+    operator: DemonstratorConfig = field(default_factory=DemonstratorConfig)
     joint_rate_hz: float = 100.0
     camera_rate_hz: float = 30.0
     timing_jitter_s: float = 0.002  # std of each sample's time around its nominal tick
@@ -48,6 +66,16 @@ class MakeDemoBagsConfig:
     image_size: int = 64
     publish_eef_pose: bool = True
     topics: DemoTopics = field(default_factory=DemoTopics)
+
+    def __post_init__(self):
+        if self.drive not in DRIVES:
+            raise ValueError(f"drive must be one of {DRIVES}, got {self.drive!r}")
+        if self.drive == "command_path" and self.urdf is None:
+            raise ValueError("drive=command_path needs --urdf (the arm's URDF, for the command path's IK)")
+
+    @property
+    def control_fps(self) -> float:
+        return self.command_fps if self.drive == "command_path" else 20.0
 
 
 @dataclass
@@ -62,65 +90,128 @@ class SimulatedDemo:
     eef_quat_base_xyzw: np.ndarray  # (N, 4)
     camera_time_s: np.ndarray  # (M,)
     camera_frames: np.ndarray  # (M, H, W, 3) uint8
+    command_time_s: np.ndarray  # (K,) when each control period began
+    command_delta_action: np.ndarray  # (K, 8) what the demonstrator commanded for it (not what the arm did)
+
+
+class PhysicsRecorder:
+    """What the rig's sensors saw: the arm after every physics step, the camera at its (jittered, dropped) ticks."""
+
+    def __init__(self, model, data, renderer, camera_ticks_s: np.ndarray):
+        self.model, self.data, self.renderer = model, data, renderer
+        self.sawyer = MujocoSawyer(model)
+        self.start_time_s = float(data.time)
+        self.camera_ticks_s = camera_ticks_s + self.start_time_s
+        self.gripper_command = geometry.GRIPPER_OPEN
+        self.rows: dict[str, list] = {"t": [], "q": [], "f": [], "g": []}
+        self.frames: list[tuple[float, np.ndarray]] = []
+        self.commands: list[tuple[float, np.ndarray]] = []
+
+    def command(self, delta_action: np.ndarray) -> None:
+        """The driver's action for the control period starting now."""
+        self.commands.append((float(self.data.time), np.asarray(delta_action, dtype=np.float64)))
+        self.gripper_command = float(delta_action[7])
+
+    def after_physics_step(self) -> None:
+        data = self.data
+        self.rows["t"].append(data.time)
+        self.rows["q"].append(self.sawyer.joint_pos_rad(data))
+        self.rows["f"].append(self.sawyer.finger_pos_m(data))
+        self.rows["g"].append(self.gripper_command)
+        ticks = self.camera_ticks_s
+        while len(self.frames) < len(ticks) and data.time >= ticks[len(self.frames)]:
+            self.frames.append((float(ticks[len(self.frames)]), self.renderer.render(data).copy()))
+
+    def demo(self) -> SimulatedDemo:
+        joint_pos = np.stack(self.rows["q"])
+        eef_pos, eef_quat = _ground_truth_poses(self.model, self.sawyer, joint_pos)
+        return SimulatedDemo(
+            time_s=np.asarray(self.rows["t"]) - self.start_time_s,
+            joint_pos_rad=joint_pos,
+            finger_pos_m=np.stack(self.rows["f"]),
+            gripper_command=np.asarray(self.rows["g"]),
+            eef_pos_base_m=eef_pos,
+            eef_quat_base_xyzw=eef_quat,
+            camera_time_s=np.array([t for t, _ in self.frames]) - self.start_time_s,
+            camera_frames=np.stack([f for _, f in self.frames]),
+            command_time_s=np.array([t for t, _ in self.commands]) - self.start_time_s,
+            command_delta_action=np.stack([a for _, a in self.commands]),
+        )
 
 
 def simulate_demo(cfg: MakeDemoBagsConfig, seed: int) -> SimulatedDemo:
-    """Roll out the scripted Lift expert, recording the arm at every physics step and the camera at its ticks."""
-    from dataset_tools.experts import ScriptedLiftExpert
+    """Roll out the demonstrator (per `cfg.drive`), recording the arm at every physics step and the camera at its ticks."""
+    rng = np.random.default_rng([seed, 1])
+    camera_ticks = _jittered_ticks(cfg.control_steps / cfg.control_fps + 1.0, cfg.camera_rate_hz, cfg.timing_jitter_s, rng)
+    camera_ticks = camera_ticks[rng.random(len(camera_ticks)) >= cfg.camera_drop_prob]
+    expert = ScriptedLiftExpert(close_steps=int(round(CLOSE_TIME_S * cfg.control_fps)))
+    expert.reset(skill=cfg.operator, rng=np.random.default_rng([seed, 3]))
+    noise = DemonstratorNoise(cfg.operator, controller.CONTROLLER_ACTION_DIM, [seed, 4])
+
+    def operator_action(observation: dict) -> np.ndarray:
+        action, _ = controller.controller_to_delta_action(np.clip(expert.act(observation) + noise.sample(), -1, 1))
+        return action
+
+    if cfg.drive == "command_path":
+        return _simulate_through_command_path(cfg, seed, camera_ticks, operator_action)
+    return _simulate_through_osc(cfg, seed, camera_ticks, operator_action)
+
+
+def _simulate_through_osc(cfg: MakeDemoBagsConfig, seed: int, camera_ticks: np.ndarray, operator_action) -> SimulatedDemo:
     from lerobot_bcrl.envs.lift import LiftEnv
     from lerobot_bcrl.envs.rendering import CameraRenderer
     from lerobot_bcrl.features import CAMERA_NAME
 
-    rng = np.random.default_rng([seed, 1])
     env = LiftEnv(obs_type="agent_pos", sim_step="robosuite")  # robosuite's step calls sim.step2, hooked below
     sim = env.sim_env.sim
     model, data = sim.model._model, sim.data._data
-    sawyer = MujocoSawyer(model)
     renderer = CameraRenderer(model, CAMERA_NAME, cfg.image_size, cfg.image_size)
-    camera_ticks = _jittered_ticks(cfg.control_steps / 20.0 + 1.0, cfg.camera_rate_hz, cfg.timing_jitter_s, rng)
-    camera_ticks = camera_ticks[rng.random(len(camera_ticks)) >= cfg.camera_drop_prob]
-    rows: dict[str, list] = {"t": [], "q": [], "f": [], "g": []}
-    frames: list[tuple[float, np.ndarray]] = []
-    gripper_now = [-1.0]
     original_step2 = sim.step2
-
-    def recording_step2():
-        original_step2()
-        rows["t"].append(data.time)
-        rows["q"].append(sawyer.joint_pos_rad(data))
-        rows["f"].append(sawyer.finger_pos_m(data))
-        rows["g"].append(gripper_now[0])
-        while len(frames) < len(camera_ticks) and data.time >= camera_ticks[len(frames)]:
-            frames.append((float(camera_ticks[len(frames)]), renderer.render(data).copy()))
-
     try:
         observation, _ = env.reset(seed=seed)
-        start_time_s = data.time
-        camera_ticks += start_time_s
+        recorder = PhysicsRecorder(model, data, renderer, camera_ticks)
+
+        def recording_step2():
+            original_step2()
+            recorder.after_physics_step()
+
         sim.step2 = recording_step2
-        expert = ScriptedLiftExpert()
-        expert.reset()
         for _ in range(cfg.control_steps):
-            action, _ = controller.controller_to_delta_action(expert.act(observation))
-            gripper_now[0] = float(action[7])
+            action = operator_action(observation)
+            recorder.command(action)
             observation, *_ = env.step(action)
     finally:
         sim.step2 = original_step2
         renderer.close()
         env.close()
-    time_s = np.asarray(rows["t"]) - start_time_s
-    joint_pos = np.stack(rows["q"])
-    eef_pos, eef_quat = _ground_truth_poses(model, sawyer, joint_pos)
-    return SimulatedDemo(
-        time_s=time_s,
-        joint_pos_rad=joint_pos,
-        finger_pos_m=np.stack(rows["f"]),
-        gripper_command=np.asarray(rows["g"]),
-        eef_pos_base_m=eef_pos,
-        eef_quat_base_xyzw=eef_quat,
-        camera_time_s=np.array([t for t, _ in frames]) - start_time_s,
-        camera_frames=np.stack([f for _, f in frames]),
-    )
+    return recorder.demo()
+
+
+def _simulate_through_command_path(
+    cfg: MakeDemoBagsConfig, seed: int, camera_ticks: np.ndarray, operator_action
+) -> SimulatedDemo:
+    from lerobot_bcrl.robot.command import CommandConfig, DeltaActionCommander
+    from lerobot_bcrl.robot.sim_rig import SimulatedLiftRig, sawyer_kinematics
+    from lerobot_bcrl.robot.transport import GuardedCommandPath
+
+    rig = SimulatedLiftRig(image_size=cfg.image_size)
+    commander = DeltaActionCommander(sawyer_kinematics(cfg.urdf), CommandConfig(fps=cfg.command_fps))
+    try:
+        rig.reset(seed)
+        recorder = PhysicsRecorder(rig.model, rig.data, rig.camera, camera_ticks)
+        rig.transport.on_physics_step = recorder.after_physics_step
+        path = GuardedCommandPath(commander, rig.transport, clock=lambda: rig.transport.time_s)
+        for _ in range(cfg.control_steps):
+            observed_at_s = rig.transport.time_s
+            action = operator_action(rig.privileged_observation())
+            recorder.command(action)
+            command = path.step(action, observed_at_s)
+            if command.stopped_because is not None:
+                raise RuntimeError(f"seed {seed}: the command path stopped the arm: {command.stopped_because}")
+    finally:
+        commander.kinematics.close()
+        rig.close()
+    return recorder.demo()
 
 
 def _ground_truth_poses(model: mujoco.MjModel, sawyer: MujocoSawyer, joint_pos_rad: np.ndarray):
@@ -279,30 +370,47 @@ def save_ground_truth(path: Path, demo: SimulatedDemo) -> None:
         eef_quat_base_xyzw=demo.eef_quat_base_xyzw,
         joint_pos_rad=demo.joint_pos_rad,
         gripper_command=demo.gripper_command,
+        command_time_s=demo.command_time_s,
+        command_delta_action=demo.command_delta_action,
         first_close_time_s=demo.time_s[closed[0]] if closed.size else np.nan,
     )
 
 
 def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
-    """Write `n_episodes` demos; returns the paths written per format (and 'ground_truth')."""
+    """Write `n_episodes` demos; returns the paths written per format (and 'ground_truth').
+
+    Each episode's files are written under `<out_dir>/.partial/` and moved into place when complete, so a folder
+    holds whole episodes only; a rerun keeps the episodes already there and records the rest.
+    """
     unknown = set(cfg.formats) - {"ros1", "ros2"}
     if unknown:
         raise ValueError(f"unknown formats {sorted(unknown)}; choose from ros1, ros2")
     out_dir = Path(cfg.out_dir)
-    written: dict[str, list[Path]] = {name: [] for name in [*cfg.formats, "ground_truth"]}
-    for name in written:
+    partial_dir = out_dir / ".partial"
+    shutil.rmtree(partial_dir, ignore_errors=True)  # what a crashed run left
+    names = [*cfg.formats, "ground_truth"]
+    written: dict[str, list[Path]] = {name: [] for name in names}
+    for name in names:
         (out_dir / name).mkdir(parents=True, exist_ok=True)
+        (partial_dir / name).mkdir(parents=True)
+    suffix = {"ros1": ".bag", "ros2": "", "ground_truth": ".npz"}
     for episode in tqdm(range(cfg.n_episodes), desc="simulating demos", unit="ep"):
         seed = cfg.seed + episode
-        demo = simulate_demo(cfg, seed)
         stem = f"episode_{episode:03d}"
-        if "ros1" in cfg.formats:
-            written["ros1"].append(write_bag(out_dir / "ros1" / f"{stem}.bag", demo, cfg, ros1=True, seed=seed))
-        if "ros2" in cfg.formats:
-            written["ros2"].append(write_bag(out_dir / "ros2" / stem, demo, cfg, ros1=False, seed=seed))
-        gt_path = out_dir / "ground_truth" / f"{stem}.npz"
-        save_ground_truth(gt_path, demo)
-        written["ground_truth"].append(gt_path)
+        paths = {name: out_dir / name / f"{stem}{suffix[name]}" for name in names}
+        if not all(path.exists() for path in paths.values()):
+            demo = simulate_demo(cfg, seed)
+            staged = {name: partial_dir / name / path.name for name, path in paths.items()}
+            for name in cfg.formats:
+                write_bag(staged[name], demo, cfg, ros1=name == "ros1", seed=seed)
+            save_ground_truth(staged["ground_truth"], demo)
+            for name, path in paths.items():
+                if path.is_dir():
+                    shutil.rmtree(path)
+                os.replace(staged[name], path)
+        for name, path in paths.items():
+            written[name].append(path)
+    shutil.rmtree(partial_dir)
     return written
 
 
