@@ -201,29 +201,13 @@ class PolicyExpert:
     """Any LeRobot policy checkpoint (e.g. one of ours) as the expert: its 8-D actions in controller units."""
 
     def __init__(self, policy_path: str, device: str = "cpu"):
-        import torch
-        from lerobot.envs.utils import preprocess_observation
-        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot_bcrl.policy_runner import PolicyRunner
 
-        config = PreTrainedConfig.from_pretrained(policy_path)
-        config.device = device
-        self._policy = get_policy_class(config.type).from_pretrained(policy_path, config=config)
-        self._pre, self._post = make_pre_post_processors(config, pretrained_path=policy_path)
-        self._preprocess_observation = preprocess_observation
-        self._torch = torch
+        self._runner = PolicyRunner(policy_path, device)
 
     def reset(self) -> None:
-        self._policy.reset()
+        self._runner.reset()
 
     def act(self, observation: dict) -> np.ndarray:
-        batch = self._preprocess_observation(_add_batch_dim(observation))
-        batch["task"] = [""]
-        with self._torch.inference_mode():
-            action = self._post(self._policy.select_action(self._pre(batch)))
-        controller_action, _ = controller.delta_action_to_controller(action[0].cpu().numpy())
+        controller_action, _ = controller.delta_action_to_controller(self._runner.delta_action(observation))
         return controller_action
-
-
-def _add_batch_dim(observation: dict) -> dict:
-    return {k: _add_batch_dim(v) if isinstance(v, dict) else np.asarray(v)[None] for k, v in observation.items()}
