@@ -7,7 +7,7 @@ export PYOPENGL_PLATFORM ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TOKENIZERS_PARALLELISM ?= false
 
-.PHONY: setup demo test test-fast bench experiments weak-expert clean
+.PHONY: setup demo test test-fast bench experiments weak-expert lab-loop clean
 
 setup:
 	@bash scripts/setup.sh
@@ -21,8 +21,11 @@ experiments: setup   # make experiments SIGMA=0.01 [MODE=images]: the paper's ru
 weak-expert: setup   # the paper's kind of demonstrator, a weak learned policy (configs/record_weak_expert.yaml)
 	bash scripts/weak_expert.sh
 
+lab-loop: setup   # demos through the real robot's command path -> bags -> dataset -> image BC -> run back through it
+	URDF=$(or $(URDF),../shared/robots/sawyer/sawyer.urdf) bash scripts/lab_loop.sh
+
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=25 tests
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow" tests
