@@ -9,6 +9,7 @@ frames, an optional end-effector pose topic) as a ROS 1 bag and a ROS 2 bag (MCA
 Example: bcrl-make-demo-bags --out_dir=data/demo_bags --n_episodes=2
 """
 
+import json
 import logging
 import os
 import shutil
@@ -92,6 +93,8 @@ class SimulatedDemo:
     camera_frames: np.ndarray  # (M, H, W, 3) uint8
     command_time_s: np.ndarray  # (K,) when each control period began
     command_delta_action: np.ndarray  # (K, 8) what the demonstrator commanded for it (not what the arm did)
+    # drive=command_path: the rig's scores at the end (reached, grasped, lifted, closest_approach_m), as bcrl-eval-rig's
+    outcome: dict[str, float] = field(default_factory=dict)
 
 
 class PhysicsRecorder:
@@ -122,7 +125,7 @@ class PhysicsRecorder:
         while len(self.frames) < len(ticks) and data.time >= ticks[len(self.frames)]:
             self.frames.append((float(ticks[len(self.frames)]), self.renderer.render(data).copy()))
 
-    def demo(self) -> SimulatedDemo:
+    def demo(self, outcome: dict[str, float] | None = None) -> SimulatedDemo:
         joint_pos = np.stack(self.rows["q"])
         eef_pos, eef_quat = _ground_truth_poses(self.model, self.sawyer, joint_pos)
         return SimulatedDemo(
@@ -136,6 +139,7 @@ class PhysicsRecorder:
             camera_frames=np.stack([f for _, f in self.frames]),
             command_time_s=np.array([t for t, _ in self.commands]) - self.start_time_s,
             command_delta_action=np.stack([a for _, a in self.commands]),
+            outcome=outcome or {},
         )
 
 
@@ -208,10 +212,13 @@ def _simulate_through_command_path(
             command = path.step(action, observed_at_s)
             if command.stopped_because is not None:
                 raise RuntimeError(f"seed {seed}: the command path stopped the arm: {command.stopped_because}")
+            rig.update_scores()
+        outcome = {"reached": rig.reached, "grasped": rig.grasped, "lifted": rig.lifted,
+                   "closest_approach_m": rig.closest_approach_m}  # fmt: skip
     finally:
         commander.kinematics.close()
         rig.close()
-    return recorder.demo()
+    return recorder.demo(outcome)
 
 
 def _ground_truth_poses(model: mujoco.MjModel, sawyer: MujocoSawyer, joint_pos_rad: np.ndarray):
@@ -373,7 +380,26 @@ def save_ground_truth(path: Path, demo: SimulatedDemo) -> None:
         command_time_s=demo.command_time_s,
         command_delta_action=demo.command_delta_action,
         first_close_time_s=demo.time_s[closed[0]] if closed.size else np.nan,
+        **{f"outcome_{name}": value for name, value in demo.outcome.items()},
     )
+
+
+def outcome_summary(ground_truth_paths: list[Path]) -> dict:
+    """The demonstrator's scores over the episodes (drive=command_path), as bcrl-eval-rig aggregates a policy's."""
+    episodes = []
+    for path in ground_truth_paths:
+        with np.load(path) as truth:
+            outcome = {k.removeprefix("outcome_"): truth[k].item() for k in truth.files if k.startswith("outcome_")}
+        if outcome:
+            episodes.append({"episode": path.stem, **outcome})
+    if not episodes:
+        return {}
+    return {
+        "n_episodes": len(episodes),
+        **{f"{k}_success": float(np.mean([e[k] for e in episodes])) for k in ("reached", "grasped", "lifted")},
+        "median_closest_approach_m": float(np.median([e["closest_approach_m"] for e in episodes])),
+        "per_episode": episodes,
+    }
 
 
 def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
@@ -384,7 +410,7 @@ def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
     """
     unknown = set(cfg.formats) - {"ros1", "ros2"}
     if unknown:
-        raise ValueError(f"unknown formats {sorted(unknown)}; choose from ros1, ros2")
+        raise ValueError(f"unknown formats {sorted(unknown)}; choose from ros1, ros2 (or none: --formats=[])")
     out_dir = Path(cfg.out_dir)
     partial_dir = out_dir / ".partial"
     shutil.rmtree(partial_dir, ignore_errors=True)  # what a crashed run left
@@ -411,6 +437,11 @@ def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
         for name, path in paths.items():
             written[name].append(path)
     shutil.rmtree(partial_dir)
+    summary = outcome_summary(written["ground_truth"])
+    if summary:
+        staged = partial_dir.with_name("outcomes.json.partial")
+        staged.write_text(json.dumps(summary, indent=2))
+        os.replace(staged, out_dir / "outcomes.json")
     return written
 
 
@@ -420,6 +451,10 @@ def main() -> None:
     written = make_demo_bags(cfg)
     for name, paths in written.items():
         print(f"{name:>12}: {len(paths)} -> {Path(cfg.out_dir) / name}")
+    summary = outcome_summary(written["ground_truth"])
+    if summary:
+        print(f"    outcomes: reached {summary['reached_success']:.0%}, grasped {summary['grasped_success']:.0%}, "
+              f"lifted {summary['lifted_success']:.0%} of {summary['n_episodes']} -> {Path(cfg.out_dir) / 'outcomes.json'}")
 
 
 if __name__ == "__main__":

@@ -15,13 +15,21 @@ if [ ! -f "$URDF" ]; then echo "lab-loop: URDF not found: $URDF (set URDF=...)" 
 if [ ! -d "$OUT/bags/ros1" ] || [ "$(ls "$OUT/bags/ground_truth" | wc -l)" -lt 30 ]; then
   $BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --out_dir="$OUT/bags"
 fi
+# The demonstrator itself on the 50 held-out starts the policy is evaluated on, scored by the same rig (no bags kept)
+if [ ! -f "$OUT/demonstrator_heldout/outcomes.json" ]; then
+  $BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --formats=[] --seed=100000 \
+    --n_episodes="$N_EVAL" --out_dir="$OUT/demonstrator_heldout"
+fi
 if [ ! -f "$OUT/dataset/meta/info.json" ]; then
   $BIN/bcrl-convert --input="$OUT/bags/ros1" --urdf="$URDF" --repo_id=local/lab_towel --root="$OUT/dataset" \
     --fps=30 --image_size=64 --overwrite=true
 fi
 POLICY="$OUT/bc/checkpoints/last/pretrained_model"
+STEPS=$($BIN/python -c "import json; print(json.load(open('configs/bc_lab_images.json'))['steps'])")
 if [ ! -d "$POLICY" ]; then
   $BIN/lerobot-train --config_path=configs/bc_lab_images.json --dataset.root="$OUT/dataset" --output_dir="$OUT/bc"
+elif [ "$($BIN/python -c "import json; print(json.load(open('$POLICY/../training_state/training_step.json'))['step'])")" -lt "$STEPS" ]; then
+  $BIN/lerobot-train --resume=true --config_path="$POLICY/train_config.json"  # an interrupted training continues
 fi
 # run_fps:command_fps. 30:30 is the dataset's rate. 20:30: the policy answers at 20 Hz while the command path
 # still carries out each delta in 1/30 s of velocity (1.5x every step). 20:20: loop and commands agree, but each
@@ -37,10 +45,13 @@ $BIN/python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
-print(f"{'run Hz':>7} {'cmd Hz':>7} {'reach':>6} {'grasp':>6} {'lift':>6} {'median closest (cm)':>19}")
+print(f"{'':>14} {'run Hz':>7} {'cmd Hz':>7} {'reach':>6} {'grasp':>6} {'lift':>6} {'median closest (cm)':>19}")
+d = json.loads((out / "demonstrator_heldout" / "outcomes.json").read_text())
+print(f"{'demonstrator':>14} {30:7g} {30:7g} {d['reached_success']:6.0%} {d['grasped_success']:6.0%} "
+      f"{d['lifted_success']:6.0%} {100 * d['median_closest_approach_m']:19.1f}")
 for path in sorted(out.glob("eval_run*/eval_info.json"), key=lambda p: p.parent.name, reverse=True):
     info = json.loads(path.read_text())
     a, r = info["aggregated"], info["rates"]
-    print(f"{r['run_fps']:7g} {r['command_fps']:7g} {a['reach_success']:6.0%} {a['grasp_success']:6.0%} "
+    print(f"{'BC (images)':>14} {r['run_fps']:7g} {r['command_fps']:7g} {a['reach_success']:6.0%} {a['grasp_success']:6.0%} "
           f"{a['lift_success']:6.0%} {100 * a['median_closest_approach_m']:19.1f}")
 PY

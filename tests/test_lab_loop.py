@@ -150,6 +150,8 @@ def test_a_recording_through_the_command_path_converts_at_its_fps(tmp_path):
     written = make_demo_bags(cfg)
     truth = np.load(written["ground_truth"][0])
     assert np.isfinite(truth["first_close_time_s"])  # the teleoperator got to the grasp
+    outcomes = json.loads((tmp_path / "bags" / "outcomes.json").read_text())  # scored by the rig, as bcrl-eval-rig
+    assert outcomes["n_episodes"] == 1 and outcomes["per_episode"][0]["reached"] == truth["outcome_reached"].item()
     # Each period is whole physics steps (2 ms), on a 1/30 s grid: the mean rate is 30 Hz, not 1 / 34 ms.
     np.testing.assert_allclose(truth["command_time_s"], np.arange(150) / FPS, atol=0.0011)
     convert(ConvertConfig(input=written["ros1"][0], repo_id="local/lab", root=tmp_path / "ds", urdf=URDF, fps=int(FPS),

@@ -101,7 +101,9 @@ def align(streams: EpisodeStreams, pose: PoseStream, fps: float) -> AlignedEpiso
         frame_index[name] = index
         report.camera_frames_received[name] = len(camera.time_s)
         in_span = (camera.time_s >= grid_s[0] - 0.5 / fps) & (camera.time_s <= grid_s[-1] + 0.5 / fps)
-        report.camera_frames_dropped[name] = int(in_span.sum() - len(np.unique(index)))
+        used = np.zeros(len(camera.time_s), dtype=bool)
+        used[index] = True  # a grid end may use a frame just outside the span: count unused frames inside it
+        report.camera_frames_dropped[name] = int((in_span & ~used).sum())
         report.camera_frames_repeated[name] = int((np.diff(index) == 0).sum())
         report.camera_max_offset_s[name] = float(np.abs(camera.time_s[index] - grid_s).max())
     return AlignedEpisode(
