@@ -394,12 +394,9 @@ def outcome_summary(ground_truth_paths: list[Path]) -> dict:
             episodes.append({"episode": path.stem, **outcome})
     if not episodes:
         return {}
-    return {
-        "n_episodes": len(episodes),
-        **{f"{k}_success": float(np.mean([e[k] for e in episodes])) for k in ("reached", "grasped", "lifted")},
-        "median_closest_approach_m": float(np.median([e["closest_approach_m"] for e in episodes])),
-        "per_episode": episodes,
-    }
+    from lerobot_bcrl.robot.eval_rig import aggregate_outcomes
+
+    return {**aggregate_outcomes(episodes), "per_episode": episodes}
 
 
 def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:

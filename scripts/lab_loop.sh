@@ -52,6 +52,6 @@ print(f"{'demonstrator':>14} {30:7g} {30:7g} {d['reached_success']:6.0%} {d['gra
 for path in sorted(out.glob("eval_run*/eval_info.json"), key=lambda p: p.parent.name, reverse=True):
     info = json.loads(path.read_text())
     a, r = info["aggregated"], info["rates"]
-    print(f"{'BC (images)':>14} {r['run_fps']:7g} {r['command_fps']:7g} {a['reach_success']:6.0%} {a['grasp_success']:6.0%} "
-          f"{a['lift_success']:6.0%} {100 * a['median_closest_approach_m']:19.1f}")
+    print(f"{'BC (images)':>14} {r['run_fps']:7g} {r['command_fps']:7g} {a['reached_success']:6.0%} {a['grasped_success']:6.0%} "
+          f"{a['lifted_success']:6.0%} {100 * a['median_closest_approach_m']:19.1f}")
 PY

@@ -136,18 +136,15 @@ def eval_rig(cfg: EvalRigConfig) -> dict:
         for i in progress:
             episodes.append(run_episode(rig, runner, path, cfg.start_seed + i, n_periods, image_key))
             progress.set_postfix(reach=_mean(episodes, "reached"), grasp=_mean(episodes, "grasped"))
+        n_velocity_limited = sum(e["velocity_limited_periods"] for e in episodes)
     finally:
         commander.kinematics.close()
         rig.close()
     result = {
         "aggregated": {
-            "n_episodes": len(episodes),
-            "reach_success": _mean(episodes, "reached"),
-            "grasp_success": _mean(episodes, "grasped"),
-            "lift_success": _mean(episodes, "lifted"),
-            "median_closest_approach_m": float(np.median([e["closest_approach_m"] for e in episodes])),
+            **aggregate_outcomes(episodes),
             "watchdog_stops": int(sum(e["watchdog_stops"] for e in episodes)),
-            "velocity_limited_fraction": sum(e["velocity_limited_periods"] for e in episodes) / (n_periods * len(episodes)),
+            "velocity_limited_fraction": n_velocity_limited / (n_periods * len(episodes)),
         },
         "rates": {"dataset_fps": fps, "run_fps": run_fps, "command_fps": command_fps},
         "per_episode": episodes,
@@ -155,6 +152,16 @@ def eval_rig(cfg: EvalRigConfig) -> dict:
     }
     _write_json_atomically(Path(cfg.output_dir) / "eval_info.json", result)
     return result
+
+
+def aggregate_outcomes(episodes: list[dict]) -> dict:
+    """Success rates and the median closest approach over episodes scored by `SimulatedLiftRig` (policies here, the
+    demonstrator in bcrl-make-demo-bags's outcomes.json)."""
+    return {
+        "n_episodes": len(episodes),
+        **{f"{name}_success": _mean(episodes, name) for name in ("reached", "grasped", "lifted")},
+        "median_closest_approach_m": float(np.median([e["closest_approach_m"] for e in episodes])),
+    }
 
 
 def _mean(episodes: list[dict], key: str) -> float:
