@@ -44,7 +44,23 @@ done
 $BIN/python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 out = Path(sys.argv[1])
+# What the arm did (the dataset's proprio-derived deltas) against what the teleoperator commanded, per 30 Hz period
+dataset = LeRobotDataset("local/lab_towel", root=out / "dataset", video_backend="pyav")
+actions, episode_of = np.asarray(dataset.hf_dataset["action"]), np.asarray(dataset.hf_dataset["episode_index"])
+deviation, first = [], []
+for episode in range(dataset.num_episodes):
+    commanded = np.load(out / "bags" / "ground_truth" / f"episode_{episode:03d}.npz")["command_delta_action"][:, :3]
+    done = actions[episode_of == episode][:, :3]
+    n = min(len(done), len(commanded))
+    moving = np.linalg.norm(commanded[:n], axis=1) > 1e-3
+    deviation.append(np.linalg.norm(done[:n][moving] - commanded[:n][moving], axis=1).sum() / np.linalg.norm(commanded[:n][moving], axis=1).sum())
+    first.append(np.linalg.norm(done[0]) / np.linalg.norm(commanded[0]))
+print(f"recording: {dataset.num_episodes} episodes, {dataset.num_frames} frames at {dataset.fps} fps; the arm's motion per "
+      f"period deviates from the command by {np.mean(deviation):.0%} of it (episodes {min(deviation):.0%}-{max(deviation):.0%}); "
+      f"in the first period it covers {np.mean(first):.0%} of the commanded delta")
 print(f"{'':>14} {'run Hz':>7} {'cmd Hz':>7} {'reach':>6} {'grasp':>6} {'lift':>6} {'median closest (cm)':>19}")
 d = json.loads((out / "demonstrator_heldout" / "outcomes.json").read_text())
 print(f"{'demonstrator':>14} {30:7g} {30:7g} {d['reached_success']:6.0%} {d['grasped_success']:6.0%} "
