@@ -13,7 +13,8 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass, field
+import sys
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import draccus
@@ -26,10 +27,12 @@ from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from lerobot_bcrl import geometry
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.robot.mujoco_sawyer import MujocoSawyer
-from lerobot_bcrl.robot.kinematics import SAWYER_ARM_JOINTS
+from lerobot_bcrl.robot.kinematics import SAWYER_ARM_JOINTS, KinematicsError
 
 BAG_START_NS = 1_700_000_000 * 10**9  # an epoch time, as on a real rig
 URDF_FINGER_JOINTS = ("right_gripper_l_finger_joint", "right_gripper_r_finger_joint")
+SETTINGS_FILE = "recording_config.json"  # the settings the folder's episodes were recorded with
+OUTCOMES_FILE = "outcomes.json"
 CLOSE_TIME_S = 0.4  # the demonstrator holds "close" this long before lifting (8 steps at 20 Hz)
 EXTRA_JOINTS = ("head_pan",)  # Intera's joint_states carries the head too; converters must pick by name
 
@@ -43,6 +46,10 @@ class DemoTopics:
 
 
 DRIVES = ("osc", "command_path")
+
+
+class RecordingSettingsError(ValueError):
+    """Settings that cannot record (a one-line message for the CLI)."""
 
 
 @dataclass
@@ -68,11 +75,15 @@ class MakeDemoBagsConfig:
     publish_eef_pose: bool = True
     topics: DemoTopics = field(default_factory=DemoTopics)
 
-    def __post_init__(self):
+    def check(self) -> None:
+        """Raise RecordingSettingsError for settings that cannot record (a one-line message for the CLI)."""
+        unknown = set(self.formats) - {"ros1", "ros2"}
+        if unknown:
+            raise RecordingSettingsError(f"unknown formats {sorted(unknown)}; choose from ros1, ros2 (or none: --formats=[])")
         if self.drive not in DRIVES:
-            raise ValueError(f"drive must be one of {DRIVES}, got {self.drive!r}")
+            raise RecordingSettingsError(f"drive must be one of {DRIVES}, got {self.drive!r}")
         if self.drive == "command_path" and self.urdf is None:
-            raise ValueError("drive=command_path needs --urdf (the arm's URDF, for the command path's IK)")
+            raise RecordingSettingsError("drive=command_path needs --urdf (the arm's URDF, for the command path's IK)")
 
     @property
     def control_fps(self) -> float:
@@ -198,8 +209,8 @@ def _simulate_through_command_path(
     from lerobot_bcrl.robot.sim_rig import SimulatedLiftRig, sawyer_kinematics
     from lerobot_bcrl.robot.transport import GuardedCommandPath
 
-    rig = SimulatedLiftRig(image_size=cfg.image_size)
     commander = DeltaActionCommander(sawyer_kinematics(cfg.urdf), CommandConfig(fps=cfg.command_fps))
+    rig = SimulatedLiftRig(image_size=cfg.image_size)
     try:
         rig.reset(seed)
         recorder = PhysicsRecorder(rig.model, rig.data, rig.camera, camera_ticks)
@@ -384,6 +395,14 @@ def save_ground_truth(path: Path, demo: SimulatedDemo) -> None:
     )
 
 
+def commanded_and_done_m(truth) -> tuple[np.ndarray, np.ndarray]:
+    """Per control period of a recording's ground truth (.npz): the commanded position delta and what the grip site
+    did over that period (its track interpolated at the periods' starts), both (K - 1, 3) in metres, base frame."""
+    starts = truth["command_time_s"]
+    track = np.stack([np.interp(starts, truth["time_s"], truth["eef_pos_base_m"][:, i]) for i in range(3)], axis=1)
+    return truth["command_delta_action"][:-1, :3], np.diff(track, axis=0)
+
+
 def outcome_summary(ground_truth_paths: list[Path]) -> dict:
     """The demonstrator's scores over the episodes (drive=command_path), as bcrl-eval-rig aggregates a policy's."""
     episodes = []
@@ -405,10 +424,9 @@ def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
     Each episode's files are written under `<out_dir>/.partial/` and moved into place when complete, so a folder
     holds whole episodes only; a rerun keeps the episodes already there and records the rest.
     """
-    unknown = set(cfg.formats) - {"ros1", "ros2"}
-    if unknown:
-        raise ValueError(f"unknown formats {sorted(unknown)}; choose from ros1, ros2 (or none: --formats=[])")
+    cfg.check()
     out_dir = Path(cfg.out_dir)
+    check_resumable(cfg)
     partial_dir = out_dir / ".partial"
     shutil.rmtree(partial_dir, ignore_errors=True)  # what a crashed run left
     names = [*cfg.formats, "ground_truth"]
@@ -436,20 +454,57 @@ def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
     shutil.rmtree(partial_dir)
     summary = outcome_summary(written["ground_truth"])
     if summary:
-        staged = partial_dir.with_name("outcomes.json.partial")
-        staged.write_text(json.dumps(summary, indent=2))
-        os.replace(staged, out_dir / "outcomes.json")
+        _write_atomically(out_dir / OUTCOMES_FILE, json.dumps(summary, indent=2))
     return written
+
+
+class RecordingMismatchError(RecordingSettingsError):
+    """`out_dir` holds episodes recorded with other settings: resuming would mix two recordings."""
+
+
+def recording_settings(cfg: MakeDemoBagsConfig) -> dict:
+    """What must be equal for a rerun to add episodes to a folder: everything but its size and place."""
+    settings = {k: v for k, v in asdict(cfg).items() if k not in ("n_episodes", "out_dir")}
+    return json.loads(json.dumps(settings, default=str))
+
+
+def check_resumable(cfg: MakeDemoBagsConfig) -> None:
+    """Refuse a folder whose episodes were recorded with other settings; record this run's settings in it."""
+    out_dir = Path(cfg.out_dir)
+    settings_file = out_dir / SETTINGS_FILE
+    current = recording_settings(cfg)
+    if any((out_dir / "ground_truth").glob("episode_*.npz")):
+        recorded = json.loads(settings_file.read_text()) if settings_file.is_file() else None
+        if recorded != current:
+            differ = f"no {SETTINGS_FILE}" if recorded is None else ", ".join(
+                sorted(k for k in current.keys() | recorded.keys() if recorded.get(k) != current.get(k))
+            )
+            raise RecordingMismatchError(
+                f"{out_dir}: holds episodes recorded with other settings ({differ}); use another --out_dir or remove it"
+            )
+    (out_dir / "ground_truth").mkdir(parents=True, exist_ok=True)
+    (out_dir / OUTCOMES_FILE).unlink(missing_ok=True)  # rewritten from the episodes at the end
+    _write_atomically(settings_file, json.dumps(current, indent=2))
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    staged = path.with_name(path.name + ".partial")
+    staged.write_text(text)
+    os.replace(staged, path)
 
 
 def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     cfg = draccus.parse(MakeDemoBagsConfig)
-    written = make_demo_bags(cfg)
+    try:
+        written = make_demo_bags(cfg)
+    except (RecordingSettingsError, KinematicsError) as err:
+        sys.exit(f"bcrl-make-demo-bags: {err}")
     for name, paths in written.items():
         print(f"{name:>12}: {len(paths)} -> {Path(cfg.out_dir) / name}")
-    summary = outcome_summary(written["ground_truth"])
-    if summary:
+    outcomes = Path(cfg.out_dir) / OUTCOMES_FILE
+    if outcomes.is_file():
+        summary = json.loads(outcomes.read_text())
         print(f"    outcomes: reached {summary['reached_success']:.0%}, grasped {summary['grasped_success']:.0%}, "
               f"lifted {summary['lifted_success']:.0%} of {summary['n_episodes']} -> {Path(cfg.out_dir) / 'outcomes.json'}")
 

@@ -12,21 +12,21 @@ N_EVAL=${N_EVAL:-50}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} MUJOCO_GL=${MUJOCO_GL:-egl}
 
 if [ ! -f "$URDF" ]; then echo "lab-loop: URDF not found: $URDF (set URDF=...)" >&2; exit 2; fi
-if [ ! -d "$OUT/bags/ros1" ] || [ "$(ls "$OUT/bags/ground_truth" | wc -l)" -lt 30 ]; then
-  $BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --out_dir="$OUT/bags"
-fi
+# bcrl-make-demo-bags keeps the episodes a folder already holds (recorded with the same settings) and adds the rest
+$BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --out_dir="$OUT/bags"
 # The demonstrator itself on the 50 held-out starts the policy is evaluated on, scored by the same rig (no bags kept)
-if [ ! -f "$OUT/demonstrator_heldout/outcomes.json" ]; then
-  $BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --formats=[] --seed=100000 \
-    --n_episodes="$N_EVAL" --out_dir="$OUT/demonstrator_heldout"
-fi
+$BIN/bcrl-make-demo-bags --config_path=configs/record_lab_bags.yaml --urdf="$URDF" --formats=[] --seed=100000 \
+  --n_episodes="$N_EVAL" --out_dir="$OUT/demonstrator_heldout"
 if [ ! -f "$OUT/dataset/meta/info.json" ]; then
+  # poses from the bags' pose topic (the grip site); the tool offset makes forward kinematics give the same point
   $BIN/bcrl-convert --input="$OUT/bags/ros1" --urdf="$URDF" --repo_id=local/lab_towel --root="$OUT/dataset" \
+    --tool_offset_pos_m="[0,0,0.109]" --tool_offset_quat_xyzw="[0,0,-0.7071068,0.7071068]" \
     --fps=30 --image_size=64 --overwrite=true
 fi
 POLICY="$OUT/bc/checkpoints/last/pretrained_model"
 STEPS=$($BIN/python -c "import json; print(json.load(open('configs/bc_lab_images.json'))['steps'])")
 if [ ! -d "$POLICY" ]; then
+  rm -rf "$OUT/bc"  # a training killed before its first checkpoint: start again
   $BIN/lerobot-train --config_path=configs/bc_lab_images.json --dataset.root="$OUT/dataset" --output_dir="$OUT/bc"
 elif [ "$($BIN/python -c "import json; print(json.load(open('$POLICY/../training_state/training_step.json'))['step'])")" -lt "$STEPS" ]; then
   $BIN/lerobot-train --resume=true --config_path="$POLICY/train_config.json"  # an interrupted training continues
@@ -45,21 +45,17 @@ $BIN/python - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 import numpy as np
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from dataset_tools.make_demo_bags import commanded_and_done_m
 out = Path(sys.argv[1])
-# What the arm did (the dataset's proprio-derived deltas) against what the teleoperator commanded, per 30 Hz period
-dataset = LeRobotDataset("local/lab_towel", root=out / "dataset", video_backend="pyav")
-actions, episode_of = np.asarray(dataset.hf_dataset["action"]), np.asarray(dataset.hf_dataset["episode_index"])
+# What the arm did in each 30 Hz period against what the teleoperator commanded for it
 deviation, first = [], []
-for episode in range(dataset.num_episodes):
-    commanded = np.load(out / "bags" / "ground_truth" / f"episode_{episode:03d}.npz")["command_delta_action"][:, :3]
-    done = actions[episode_of == episode][:, :3]
-    n = min(len(done), len(commanded))
-    moving = np.linalg.norm(commanded[:n], axis=1) > 1e-3
-    deviation.append(np.linalg.norm(done[:n][moving] - commanded[:n][moving], axis=1).sum() / np.linalg.norm(commanded[:n][moving], axis=1).sum())
+for truth_file in sorted((out / "bags" / "ground_truth").glob("episode_*.npz")):
+    commanded, done = commanded_and_done_m(np.load(truth_file))
+    moving = np.linalg.norm(commanded, axis=1) > 1e-3
+    deviation.append(np.linalg.norm(done[moving] - commanded[moving], axis=1).sum() / np.linalg.norm(commanded[moving], axis=1).sum())
     first.append(np.linalg.norm(done[0]) / np.linalg.norm(commanded[0]))
-print(f"recording: {dataset.num_episodes} episodes, {dataset.num_frames} frames at {dataset.fps} fps; the arm's motion per "
-      f"period deviates from the command by {np.mean(deviation):.0%} of it (episodes {min(deviation):.0%}-{max(deviation):.0%}); "
+print(f"recording: {len(deviation)} episodes; the arm's motion per period deviates from the command by "
+      f"{np.mean(deviation):.0%} of it (episodes {min(deviation):.0%}-{max(deviation):.0%}); "
       f"in the first period it covers {np.mean(first):.0%} of the commanded delta")
 print(f"{'':>14} {'run Hz':>7} {'cmd Hz':>7} {'reach':>6} {'grasp':>6} {'lift':>6} {'median closest (cm)':>19}")
 d = json.loads((out / "demonstrator_heldout" / "outcomes.json").read_text())

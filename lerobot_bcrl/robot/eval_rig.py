@@ -23,16 +23,17 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_bcrl.features import ENV_STATE_DIM
+from lerobot_bcrl.robot.kinematics import KinematicsError
 
 log = logging.getLogger(__name__)
 
 
-class RateMismatchError(ValueError):
+class EvalRigSettingsError(ValueError):
+    """Settings that cannot run (a one-line message for the CLI)."""
+
+
+class RateMismatchError(EvalRigSettingsError):
     """A loop rate other than the dataset's, without `allow_rate_mismatch`."""
-
-
-class MissingUrdfError(ValueError):
-    """No `--urdf`: the command path's IK needs the arm's URDF."""
 
 
 @dataclass
@@ -89,6 +90,7 @@ def policy_observation(rig, image_key: str | None) -> dict:
 def run_episode(rig, runner, path, seed: int, n_periods: int, image_key: str | None) -> dict:
     rig.reset(seed)
     runner.reset()
+    path.reset()
     start_s = rig.transport.time_s
     stops_before = path.stops
     velocity_limited = clamped = 0
@@ -118,16 +120,18 @@ def eval_rig(cfg: EvalRigConfig) -> dict:
     from lerobot_bcrl.robot.sim_rig import SimulatedLiftRig, sawyer_kinematics
     from lerobot_bcrl.robot.transport import GuardedCommandPath
 
+    if cfg.n_episodes < 1:
+        raise EvalRigSettingsError(f"n_episodes must be at least 1, got {cfg.n_episodes}")
     if cfg.urdf is None:
-        raise MissingUrdfError("--urdf is required (the arm's URDF, for the command path's IK)")
+        raise EvalRigSettingsError("--urdf is required (the arm's URDF, for the command path's IK)")
     fps = dataset_fps(cfg.policy_path, cfg.dataset_root)
     run_fps, command_fps = loop_rates(cfg, fps)
     runner = PolicyRunner(str(cfg.policy_path), cfg.device)
     images = [key for key in runner.config.input_features if key.startswith("observation.images.")]
     image_key = images[0] if images else None
     image_size = runner.config.input_features[image_key].shape[-1] if image_key else None
-    rig = SimulatedLiftRig(image_size=image_size)
     commander = DeltaActionCommander(sawyer_kinematics(cfg.urdf), CommandConfig(fps=command_fps))
+    rig = SimulatedLiftRig(image_size=image_size)
     path = GuardedCommandPath(commander, rig.transport, clock=lambda: rig.transport.time_s, period_s=1.0 / run_fps)
     n_periods = int(round(cfg.episode_s * run_fps))
     episodes = []
@@ -180,7 +184,7 @@ def main() -> None:
     cfg = draccus.parse(EvalRigConfig)
     try:
         result = eval_rig(cfg)
-    except (RateMismatchError, FileNotFoundError, MissingUrdfError) as err:
+    except (EvalRigSettingsError, FileNotFoundError, KinematicsError) as err:
         sys.exit(f"bcrl-eval-rig: {err}")
     print(json.dumps({**result["aggregated"], **result["rates"]}))
     print(f"per-episode results: {Path(cfg.output_dir) / 'eval_info.json'}")

@@ -30,6 +30,7 @@ from lerobot_bcrl.robot.mujoco_sawyer import (
 
 GRIPPER_ACTUATORS = ("gripper0_right_gripper_r_finger_joint", "gripper0_right_gripper_l_finger_joint")
 BASE_COLLISION_GEOM = "robot0_base_col"
+VELOCITY_LOOP_GAIN_PER_S = 50.0  # the arm's velocity error decays with a ~20 ms time constant
 REACHED_WITHIN_M = 0.02  # grip site to cube centre: the fingers are around the cube (its half-size is 0.02 m)
 LIFTED_ABOVE_START_M = 0.04  # the cube's rise that robosuite's Lift counts as success
 
@@ -37,17 +38,10 @@ LIFTED_ABOVE_START_M = 0.04  # the cube's rise that robosuite's Lift counts as s
 class PhysicsSawyerTransport:
     """The MuJoCo Sawyer in joint-velocity mode; `on_physics_step()` is called after every physics step."""
 
-    def __init__(
-        self,
-        model: mujoco.MjModel,
-        data: mujoco.MjData,
-        velocity_gain_per_s: float = 50.0,
-        on_physics_step: Callable[[], None] | None = None,
-    ):
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData):
         self.model, self.data = model, data
         self.sawyer = MujocoSawyer(model)
-        self.velocity_gain_per_s = velocity_gain_per_s
-        self.on_physics_step = on_physics_step
+        self.on_physics_step: Callable[[], None] | None = None
         self._arm_actuators = np.array([model.actuator(f"robot0_torq_{n}").id for n in SAWYER_ARM_JOINTS])
         self._torque_limit = model.actuator_ctrlrange[self._arm_actuators, 1]
         fingers = [model.actuator(name).id for name in GRIPPER_ACTUATORS]
@@ -58,7 +52,9 @@ class PhysicsSawyerTransport:
         self._mass_matrix = np.zeros((model.nv, model.nv))
         self.joint_vel_command_rad_s = np.zeros(len(self._arm_actuators))
         self.gripper_closed = False
-        self._period_end_s: float | None = None
+        self._grid_start_s = 0.0  # the period grid: period k ends at round((k + 1) * period / dt) physics steps
+        self._grid_period_s: float | None = None
+        self._periods_done = 0
 
     @property
     def time_s(self) -> float:
@@ -73,21 +69,30 @@ class PhysicsSawyerTransport:
 
     def wait_period(self, period_s: float) -> None:
         """Step the physics to the end of this period. Periods end on a grid of `period_s` like a rig's timer (1/30 s
-        is 16.7 physics steps: 17, 17, 16, ...), so the mean rate is the asked one; the grid restarts after a reset."""
+        is 16.7 physics steps: 17, 17, 16, ...), so the mean rate is the asked one; the grid restarts when the period
+        changes or the time is not where the last period ended (a reset)."""
         dt = self.model.opt.timestep
-        on_grid = self._period_end_s is not None and abs(self.data.time - self._period_end_s) < dt / 2
-        self._period_end_s = (self._period_end_s if on_grid else self.data.time) + period_s
+        grid_now_s = self._grid_start_s + self._steps_to_period_end(self._periods_done, period_s) * dt
+        if period_s != self._grid_period_s or abs(self.data.time - grid_now_s) > dt / 2:
+            self._grid_start_s, self._grid_period_s, self._periods_done = float(self.data.time), period_s, 0
+        k = self._periods_done
+        n_steps = max(1, self._steps_to_period_end(k + 1, period_s) - self._steps_to_period_end(k, period_s))
+        self._periods_done += 1
         dofs = self.sawyer.arm_dof_adr
-        for _ in range(max(1, int(round((self._period_end_s - self.data.time) / dt)))):
+        for _ in range(n_steps):
             mujoco.mj_fullM(self.model, self._mass_matrix, self.data.qM)
             velocity_error = self.joint_vel_command_rad_s - self.data.qvel[dofs]
-            torque = self._mass_matrix[np.ix_(dofs, dofs)] @ (self.velocity_gain_per_s * velocity_error)
+            torque = self._mass_matrix[np.ix_(dofs, dofs)] @ (VELOCITY_LOOP_GAIN_PER_S * velocity_error)
             torque += self.data.qfrc_bias[dofs]
             self.data.ctrl[self._arm_actuators] = np.clip(torque, -self._torque_limit, self._torque_limit)
             self.data.ctrl[self._finger_actuators] = self._finger_ctrl[self.gripper_closed]
             mujoco.mj_step(self.model, self.data)
             if self.on_physics_step is not None:
                 self.on_physics_step()
+
+
+    def _steps_to_period_end(self, n_periods: int, period_s: float) -> int:
+        return int(round(n_periods * period_s / self.model.opt.timestep))
 
 
 def sawyer_kinematics(urdf_path: str | Path) -> UrdfKinematics:
@@ -121,17 +126,24 @@ class SimulatedLiftRig:
         self._cube_body = self.env.sim_env.cube_body_id
         self.cube_start_pos_base_m = np.zeros(3)
         self.closest_approach_m = np.inf
+        self._last_tool_quat: np.ndarray | None = None
 
     def reset(self, seed: int) -> None:
         self.env.reset(seed=seed)
+        self._last_tool_quat = None
         self.transport.send(np.zeros(7), gripper_closed=False)
         self.cube_start_pos_base_m = self.cube_pose_base()[0]
         self.closest_approach_m = np.inf
         self.update_scores()
 
     def state(self) -> np.ndarray:
-        """`observation.state`: [tool pos (m), tool quat xyzw, 2 finger joints, 7 arm joints (rad)], base frame."""
+        """`observation.state`: [tool pos (m), tool quat xyzw, 2 finger joints, 7 arm joints (rad)], base frame. The
+        quaternion stays on the cover nearest the previous call's since the reset, as bcrl-convert writes episodes
+        (a downward tool's quaternion changes sign as its yaw crosses 45 degrees)."""
         pos, quat = self.sawyer.grip_site_pose_base(self.data)
+        if self._last_tool_quat is not None and np.dot(quat, self._last_tool_quat) < 0:
+            quat = -quat
+        self._last_tool_quat = quat
         state = np.concatenate([pos, quat, self.sawyer.finger_pos_m(self.data), self.sawyer.joint_pos_rad(self.data)])
         assert state.shape == (STATE_DIM,)
         return state

@@ -49,6 +49,10 @@ class GuardedCommandPath:
         self.gripper_closed = False  # the last command sent
         self.stops = 0
 
+    def reset(self) -> None:
+        """A new episode: the gripper's last command is open again (what a stop holds before the first command)."""
+        self.gripper_closed = False
+
     def step(self, action: np.ndarray, observed_at_s: float | None = None) -> JointCommand:
         """`observed_at_s`: the `clock()` time of the observation the action answers (None: no deadline)."""
         action = np.asarray(action, dtype=np.float64)
