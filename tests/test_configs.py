@@ -29,6 +29,7 @@ def test_every_config_file_is_covered():
     tested |= {f"record_sigma{sigma}.yaml" for sigma in SIGMAS} | {"record_multi_demonstrator.yaml"}
     tested |= set(BCRL_CONFIGS) | {"record_lowdim_retry.yaml", "record_operator_mix.yaml"}
     tested |= {"record_weak_expert.yaml"}  # tests/test_experiments_script.py records it with a tiny weak expert
+    tested |= {"record_lab_bags.yaml", "bc_lab_images.json"}
     names = {p.name for p in CONFIGS.iterdir() if p.suffix in (".json", ".yaml")}
     assert names == tested, f"configs without a test: {sorted(names - tested)}; tested but missing: {sorted(tested - names)}"
 
@@ -42,6 +43,19 @@ def test_bc_configs_load_as_lerobot_train_configs(mode, observation_mode):
     assert cfg.steps > 0 and cfg.batch_size > 0
     # BC+RL's critic comes with the BC checkpoint: bcrl-finetune takes the policy's config from it
     assert cfg.policy.critic_hidden_dims == (256, 256)
+
+
+def test_lab_configs_record_through_the_command_path_and_train_on_images():
+    from dataset_tools.make_demo_bags import MakeDemoBagsConfig
+
+    record = draccus.parse(MakeDemoBagsConfig, config_path=str(CONFIGS / "record_lab_bags.yaml"), args=["--urdf=sawyer.urdf"])
+    record.check()
+    assert record.drive == "command_path" and record.control_fps == 30 and record.formats == ["ros1"]
+    assert record.n_episodes == 30 and record.control_steps / record.control_fps >= 5  # ~30 demos, as in the paper
+    assert 0 < record.operator.speed < 1 and record.operator.noise_std > 0  # slower than the expert, and a drifting hand
+    train = parse(TrainPipelineConfig, CONFIGS / "bc_lab_images.json")
+    assert train.policy.type == "bcrl" and train.policy.observation_mode == "pixels" and train.policy.push_to_hub is False
+    assert train.dataset.repo_id == "local/lab_towel"  # what scripts/lab_loop.sh converts the bags into
 
 
 @pytest.mark.parametrize("name", sorted(BCRL_CONFIGS))
