@@ -167,6 +167,8 @@ def log_policy_step(actions, values) -> None:
     if not _ROLLOUT_SLOTS:
         return
     actions, values = _np(actions), _np(values)
+    if values is None:  # a privileged critic without its input (the policy acting alone) gives no value
+        values = [None] * len(actions)
     for slot, action, value in zip(_ROLLOUT_SLOTS, actions, values):
         if slot.logger is not None:
             slot.logger.log_policy_outputs(slot.frame_index, action, value)

@@ -93,6 +93,39 @@ def test_separate_critic_keeps_the_value_loss_off_the_actor(fixture_name, reques
     assert all(grads[name] is None or not grads[name].any() for name in actor), "value loss reached the actor"
 
 
+def test_privileged_critic_reads_the_simulator_state_and_the_actor_acts_without_it(image_dataset_root):
+    from lerobot_bcrl.features import ENV_STATE_KEY, IMAGE_KEY
+
+    dataset = load_dataset(image_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset, critic_hidden_dims=(32,), critic_observation="privileged")
+    assert policy.model.critic is None and policy.model.value_head is None
+    agent = BCRLAgent(policy, preprocessor)
+    batch = preprocessor(whole_dataset_batch(dataset))
+    value = agent.value(batch)
+    # the value follows the environment state and not the camera
+    assert not torch.allclose(agent.value({**batch, ENV_STATE_KEY: batch[ENV_STATE_KEY].flip(0)}), value)
+    torch.testing.assert_close(agent.value({**batch, IMAGE_KEY: batch[IMAGE_KEY].flip(0)}), value)
+    # the value loss trains the privileged critic only
+    _, _, value = agent.evaluate(batch, agent.sample(batch)[0])
+    value.pow(2).mean().backward()
+    grads = {name: p.grad for name, p in policy.named_parameters()}
+    critic = [name for name in grads if name.startswith("model.privileged_critic.")]
+    assert critic and all(grads[name] is not None and grads[name].abs().sum() > 0 for name in critic)
+    assert all(grads[name] is None or not grads[name].any() for name in grads if name not in critic)
+    # deployment: a robot gives no environment state, and acting needs none
+    without_state = {key: v for key, v in batch.items() if key != ENV_STATE_KEY}
+    assert torch.equal(policy.select_action(without_state), policy.select_action(batch))
+    assert policy.model(without_state).value is None
+
+
+def test_privileged_critic_is_refused_where_it_cannot_mean_anything(lowdim_dataset_root):
+    dataset = load_dataset(lowdim_dataset_root)
+    with pytest.raises(ValueError, match="give critic_hidden_dims"):
+        make_bcrl_policy(dataset, critic_observation="privileged")
+    with pytest.raises(ValueError, match="for pixels policies"):
+        make_bcrl_policy(dataset, critic_hidden_dims=(32,), critic_observation="privileged")
+
+
 def test_bc_checkpoint_loads_with_a_fresh_separate_critic(lowdim_dataset_root, tmp_path):
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import make_policy

@@ -75,13 +75,15 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     assert "observation.images.agentview" in json.loads((bc_checkpoint / "config.json").read_text())["input_features"]
     args = [arg for arg in finetune_args(data, tmp_path / "bcrl", 128) if not arg.startswith("--rollout.n_workers")]
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}", *args, "--env.obs_type=pixels_agent_pos",
-                     "--rollout.n_workers=1", "--policy.critic_hidden_dims=[32]", timeout=300)
+                     "--rollout.n_workers=1", "--policy.critic_hidden_dims=[32]",
+                     "--policy.critic_observation=privileged", timeout=300)  # an asymmetric critic
     assert "128 env steps" in output
     result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
     assert result["env_steps"] == 128 and result["eval_episodes"] == 1 and 0 < result["theta"] < 1
     (row,) = csv.DictReader((tmp_path / "bcrl" / "logs.csv").open())
     assert int(row["env_steps"]) == 128 and float(row["bc_loss"]) > 0  # the BC term ran on decoded frames
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
+    assert json.loads((pretrained / "config.json").read_text())["critic_observation"] == "privileged"
     eval_output = run_cli("lerobot-eval", f"--policy.path={pretrained}", "--env.type=bcrl_lift",
                           "--env.obs_type=pixels_agent_pos", "--env.episode_length=6", "--eval.n_episodes=1",
                           "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",

@@ -15,6 +15,7 @@ from lerobot_bcrl.features import ENV_STATE_KEY, STATE_KEY
 from lerobot_bcrl.geometry import ACTION_DIM, MAX_DELTA_POS_M, MAX_DELTA_ROT_RAD
 
 OBSERVATION_MODES = ("auto", "pixels", "low_dim")
+CRITIC_OBSERVATIONS = ("actor", "privileged")
 
 
 @PreTrainedConfig.register_subclass("bcrl")
@@ -35,6 +36,11 @@ class BCRLConfig(PreTrainedConfig):
     # cannot pull the trunk away from what the BC term taught it. A BC checkpoint without a critic loads with
     # a freshly initialised one (`bcrl-finetune --policy.path=... --ppo.critic_hidden_dims=[256,256]`).
     critic_hidden_dims: tuple[int, ...] = ()
+    # What that separate critic reads. "actor": the actor's inputs, as above. "privileged" (pixels policies): its
+    # own MLP on observation.environment_state + observation.state, which the simulator gives and a robot does not:
+    # an asymmetric critic. Only PPO in simulation uses the value; `select_action` works without the
+    # environment state, so deployment needs the actor alone.
+    critic_observation: str = "actor"
     aux_hidden_dim: int = 64  # hidden width of the EEF- and grasp-position heads off the keypoints
     # The delta-position head predicts delta_pos / delta_pos_scale_m, so that its targets are O(1)
     # although the action itself is left unnormalized (ACTION uses IDENTITY, see normalization_mapping).
@@ -82,6 +88,10 @@ class BCRLConfig(PreTrainedConfig):
         super().__post_init__()
         if self.observation_mode not in OBSERVATION_MODES:
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {self.observation_mode!r}")
+        if self.critic_observation not in CRITIC_OBSERVATIONS:
+            raise ValueError(f"critic_observation must be one of {CRITIC_OBSERVATIONS}, got {self.critic_observation!r}")
+        if self.critic_observation == "privileged" and not self.critic_hidden_dims:
+            raise ValueError("critic_observation='privileged' is a separate critic: give critic_hidden_dims, e.g. [256, 256]")
         if self.delta_pos_scale_m <= 0:
             raise ValueError(f"delta_pos_scale_m must be > 0, got {self.delta_pos_scale_m}")
         if self.delta_rot_scale_rad <= 0:
@@ -128,6 +138,12 @@ class BCRLConfig(PreTrainedConfig):
             raise ValueError(f"bcrl in pixels mode reads exactly one camera, got {list(self.image_features)}")
         if not self.uses_images and ENV_STATE_KEY not in self.input_features:
             raise ValueError(f"bcrl in low_dim mode needs '{ENV_STATE_KEY}' among the input features")
+        if self.critic_observation == "privileged":
+            if not self.uses_images:
+                raise ValueError("critic_observation='privileged' is for pixels policies: a low_dim actor and its"
+                                 " critic already read observation.environment_state")
+            if ENV_STATE_KEY not in self.input_features:
+                raise ValueError(f"critic_observation='privileged' reads '{ENV_STATE_KEY}': the dataset lacks it")
         action = self.action_feature
         if action is not None and tuple(action.shape) != (ACTION_DIM,):
             raise ValueError(f"bcrl predicts the {ACTION_DIM}-D delta action, got action shape {action.shape}")

@@ -2,7 +2,8 @@
 
 `CNN(image) -> spatial softmax -> keypoints`, `MLP([keypoints, state]) -> trunk`; heads off the trunk:
 delta position, delta rotation, gripper logits, value; heads off the keypoints: EEF and grasp position.
-With `critic_hidden_dims` set, the value has its own MLP on `[keypoints (detached), state]` instead.
+With `critic_hidden_dims` set, the value has its own MLP on `[keypoints (detached), state]` instead, or, with
+`critic_observation="privileged"`, on `[environment_state, state]` (an asymmetric critic for a pixels actor).
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ class BCRLOutputs:
     delta_pos_scaled: Tensor  # (B, 3) delta position / delta_pos_scale_m
     delta_rot_scaled: Tensor  # (B, 3) rotation vector / delta_rot_scale_rad
     gripper_logits: Tensor  # (B, 2) [open, closed]
-    value: Tensor  # (B,) state value for PPO
+    value: Tensor | None  # (B,) state value for PPO; None where a privileged critic lacks its input (deployment)
     eef_pos_normalized: Tensor  # (B, 3) aux head, standardized by the aux.eef_pos stats
     grasp_pos_normalized: Tensor  # (B, 3) aux head, same standardization
 
@@ -114,12 +115,16 @@ class BCRLModel(nn.Module):
         self.delta_pos_head = nn.Linear(trunk_dim, 3)
         self.delta_rot_head = nn.Linear(trunk_dim, 3)
         self.gripper_head = nn.Linear(trunk_dim, 2)
-        if config.critic_hidden_dims:  # a separate critic (see BCRLConfig.critic_hidden_dims)
-            self.value_head = None
+        # The value: one linear layer on the trunk, or a separate critic (BCRLConfig.critic_hidden_dims). The
+        # privileged critic is another module name, so that a BC checkpoint's actor-input critic is not loaded into it.
+        self.value_head = self.critic = self.privileged_critic = None
+        if config.critic_observation == "privileged":
+            env_state_dim = config.input_features[ENV_STATE_KEY].shape[0]
+            self.privileged_critic = mlp(env_state_dim + state_dim, config.critic_hidden_dims, 1)
+        elif config.critic_hidden_dims:
             self.critic = mlp(keypoint_dim + state_dim, config.critic_hidden_dims, 1)
         else:
             self.value_head = nn.Linear(trunk_dim, 1)
-            self.critic = None
         self.eef_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
         self.grasp_pos_head = mlp(keypoint_dim, (config.aux_hidden_dim,), 3)
 
@@ -131,18 +136,24 @@ class BCRLModel(nn.Module):
     def forward(self, batch: dict[str, Tensor]) -> BCRLOutputs:
         keypoints = self.keypoints(batch)
         trunk = self.trunk(torch.cat([keypoints, batch[STATE_KEY]], dim=-1))
-        if self.critic is None:
-            value = self.value_head(trunk)
-        else:  # keypoints detached: the value loss does not reach the CNN either
-            value = self.critic(torch.cat([keypoints.detach(), batch[STATE_KEY]], dim=-1))
         return BCRLOutputs(
             delta_pos_scaled=self.delta_pos_head(trunk),
             delta_rot_scaled=self.delta_rot_head(trunk),
             gripper_logits=self.gripper_head(trunk),
-            value=value.squeeze(-1),
+            value=self.value(batch, keypoints, trunk),
             eef_pos_normalized=self.eef_pos_head(keypoints),
             grasp_pos_normalized=self.grasp_pos_head(keypoints),
         )
+
+
+    def value(self, batch: dict[str, Tensor], keypoints: Tensor, trunk: Tensor) -> Tensor | None:
+        if self.value_head is not None:
+            return self.value_head(trunk).squeeze(-1)
+        if self.critic is not None:  # keypoints detached: the value loss does not reach the CNN either
+            return self.critic(torch.cat([keypoints.detach(), batch[STATE_KEY]], dim=-1)).squeeze(-1)
+        if ENV_STATE_KEY not in batch:  # a robot has no privileged state, and acting needs no value
+            return None
+        return self.privileged_critic(torch.cat([batch[ENV_STATE_KEY], batch[STATE_KEY]], dim=-1)).squeeze(-1)
 
 
 def _stat(dataset_stats: dict | None, key: str, name: str) -> Tensor | None:
@@ -309,7 +320,8 @@ def quat_from_rotvec(rotvec_rad: Tensor) -> Tensor:
 
 def _select_rows(outputs: BCRLOutputs, batch: dict, keep: Tensor) -> tuple[BCRLOutputs, dict]:
     """The rows of `outputs` and of every per-frame tensor of `batch` where `keep` is True."""
-    kept_outputs = BCRLOutputs(**{f.name: getattr(outputs, f.name)[keep] for f in fields(outputs)})
+    kept_outputs = BCRLOutputs(**{f.name: None if getattr(outputs, f.name) is None else getattr(outputs, f.name)[keep]
+                                  for f in fields(outputs)})
     kept_batch = {
         key: value[keep] if isinstance(value, Tensor) and value.shape[:1] == keep.shape else value
         for key, value in batch.items()
