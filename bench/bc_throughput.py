@@ -1,6 +1,7 @@
 """BC training throughput of the `bcrl` policy on CPU: data pipeline + step vs the model step alone.
 
-Prints one JSON line. Example: python bench/bc_throughput.py --root=/tmp/dev_img --batch_size=64 --steps=5
+Prints one JSON line per video backend, each with the model step alone on the same batches (the baseline). Example:
+python bench/bc_throughput.py --root=/tmp/dev_img --batch_size=64 --steps=5 --video_backends=torchcodec,bcrl_frame_cache
 """
 
 from __future__ import annotations
@@ -19,15 +20,23 @@ def main() -> None:
     parser.add_argument("--batch_size", type=int, default=64)
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--latency_calls", type=int, default=50)
+    parser.add_argument("--items", type=int, default=300, help="dataset items timed one by one in this process")
     parser.add_argument("--num_workers", type=int, default=1, help="DataLoader workers decoding beside the step")
+    parser.add_argument("--video_backends", default="torchcodec,bcrl_frame_cache",
+                        help="comma-separated LeRobotDataset video backends to measure, one line each")
     args = parser.parse_args()
+    for backend in args.video_backends.split(","):
+        print(json.dumps(measure(args, backend)), flush=True)
 
+
+def measure(args, video_backend: str) -> dict:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig  # importing lerobot_bcrl: the frame cache too
 
-    dataset = LeRobotDataset("local/bench", root=args.root)
+    torch.manual_seed(0)
+    dataset = LeRobotDataset("local/bench", root=args.root, video_backend=video_backend)
     cfg = BCRLConfig(device="cpu", push_to_hub=False)
     policy = make_policy(cfg, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
@@ -69,21 +78,29 @@ def main() -> None:
         policy.select_action(single)
         latencies.append(time.perf_counter() - start)
 
+    # One sample's cost in this process (what each DataLoader worker pays per sample), after the loader: LeRobot
+    # warns against decoding in the main process before workers start.
+    item_indices = torch.randperm(len(dataset))[: args.items].tolist()
+    dataset[item_indices[0]]
+    start = time.perf_counter()
+    for index in item_indices:
+        dataset[index]
+    item_ms = 1000 * (time.perf_counter() - start) / len(item_indices)
+
     samples = args.steps * args.batch_size
-    print(
-        json.dumps(
-            {
-                "mode": "pixels" if cfg.uses_images else "low_dim",
-                "batch_size": args.batch_size,
-                "dataloader_workers": args.num_workers,
-                "torch_threads": torch.get_num_threads(),
-                "pipeline_samples_per_s": samples / pipeline_s,
-                "model_step_samples_per_s": samples / model_s,
-                "model_busy_fraction": model_s / pipeline_s,  # target >= 0.9
-                "select_action_p50_ms_batch1": 1000 * float(np.median(latencies)),
-            }
-        )
-    )
+    return {
+        "video_backend": video_backend if dataset.meta.video_keys else None,
+        "mode": "pixels" if cfg.uses_images else "low_dim",
+        "batch_size": args.batch_size,
+        "dataloader_workers": args.num_workers,
+        "torch_threads": torch.get_num_threads(),
+        "pipeline_samples_per_s": samples / pipeline_s,
+        "model_step_samples_per_s": samples / model_s,
+        "model_busy_fraction": model_s / pipeline_s,  # target >= 0.9
+        "dataset_item_ms": item_ms,
+        "model_step_ms_per_sample": 1000 * model_s / samples,
+        "select_action_p50_ms_batch1": 1000 * float(np.median(latencies)),
+    }
 
 
 if __name__ == "__main__":

@@ -70,7 +70,7 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     assert list((data / "videos").rglob("*.mp4"))
     run_cli("lerobot-train", "--policy.type=bcrl", "--dataset.repo_id=local/camera", f"--dataset.root={data}",
             "--policy.push_to_hub=false", "--steps=2", "--batch_size=4", f"--output_dir={tmp_path / 'bc'}",
-            "--num_workers=0", "--policy.device=cpu", "--save_freq=2")
+            "--num_workers=0", "--policy.device=cpu", "--save_freq=2", "--dataset.video_backend=bcrl_frame_cache")
     bc_checkpoint = tmp_path / "bc" / "checkpoints" / "last" / "pretrained_model"
     assert "observation.images.agentview" in json.loads((bc_checkpoint / "config.json").read_text())["input_features"]
     args = [arg for arg in finetune_args(data, tmp_path / "bcrl", 128) if not arg.startswith("--rollout.n_workers")]

@@ -19,14 +19,20 @@ LEROBOT_VERSION = "0.6.1"  # the version whose converters this patch was written
 AUX_TARGET_KEYS = (AUX_EEF_POS_KEY, AUX_GRASP_POS_KEY, AUX_GRASP_VALID_KEY, AUX_IMITATE_KEY)
 
 
-def keep_aux_targets_in_batches() -> None:
-    """Add `AUX_TARGET_KEYS` to LeRobot's complementary keys (idempotent); refuse a LeRobot it was not written for."""
+def require_lerobot_version() -> None:
+    """Refuse a LeRobot other than the one this package's two patches (here and frame_cache.py) were written for."""
     if lerobot.__version__ != LEROBOT_VERSION or not hasattr(converters, "_COMPLEMENTARY_KEYS"):
         raise RuntimeError(
-            f"lerobot_bcrl needs lerobot=={LEROBOT_VERSION} (found {lerobot.__version__}): the bcrl policy keeps its aux.*"
-            " targets through lerobot.processor.converters._COMPLEMENTARY_KEYS, which other versions may not have."
-            f" Install lerobot=={LEROBOT_VERSION}."
+            f"lerobot_bcrl needs lerobot=={LEROBOT_VERSION} (found {lerobot.__version__}): it extends two private parts"
+            " of LeRobot, lerobot.processor.converters._COMPLEMENTARY_KEYS (the bcrl policy's aux.* targets) and"
+            " lerobot.datasets.dataset_reader.decode_video_frames (the bcrl_frame_cache video backend), which other"
+            f" versions may not have. Install lerobot=={LEROBOT_VERSION}."
         )
+
+
+def keep_aux_targets_in_batches() -> None:
+    """Add `AUX_TARGET_KEYS` to LeRobot's complementary keys (idempotent); refuse a LeRobot it was not written for."""
+    require_lerobot_version()
     missing = tuple(key for key in AUX_TARGET_KEYS if key not in converters._COMPLEMENTARY_KEYS)
     if missing:
         converters._COMPLEMENTARY_KEYS = (*converters._COMPLEMENTARY_KEYS, *missing)

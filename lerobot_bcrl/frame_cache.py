@@ -1,0 +1,89 @@
+"""`--dataset.video_backend=bcrl_frame_cache`: LeRobotDataset's frames decoded once per video file and served from memory.
+
+LeRobotDataset decodes every sample's frame from its MP4 (seek to the key frame, decode up to the frame): for a
+128x128 camera that costs about as much as the `bcrl` model's whole training step on a CPU, so the model waits on the
+data ([RESULTS](../docs/RESULTS.md#bc-training-throughput)). This backend decodes a whole video file the first time a
+process asks for one of its frames (torchcodec, in order, no seeking), keeps the frames as uint8 (49 KB a 128x128
+frame: about 1 GB per 20,000 frames, in each DataLoader worker that reads them) and answers each query by the nearest
+frame, within LeRobot's timestamp tolerance as its own decoders check it.
+
+LeRobot picks its decoder by name inside `lerobot.datasets.dataset_reader`; `install()` wraps that function so that
+this name is understood and every other name goes to LeRobot's decoder unchanged (one LeRobot version, checked like
+`policies/bcrl/aux_targets.py`). Importing `lerobot_bcrl` (as lerobot-train's plugin loading does) installs it.
+lerobot-train's DataLoader workers are spawned, fresh interpreters that unpickle the dataset without loading plugins:
+so a reader built with this backend holds its name as a `FrameCacheBackend`, a `str` whose unpickling imports this
+module, which installs the decoder in the worker before its first frame.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import torch
+from lerobot.datasets import dataset_reader
+from lerobot.datasets.video_utils import FrameTimestampError
+from torch import Tensor
+
+from lerobot_bcrl.policies.bcrl.aux_targets import require_lerobot_version
+
+BACKEND = "bcrl_frame_cache"
+
+
+class FrameCacheBackend(str):
+    """The backend's name; pickled by reference to this module, so a spawned worker that unpickles it installs the
+    decoder."""
+
+
+@functools.lru_cache(maxsize=None)
+def _decoded(video_path: str, mtime_ns: int) -> tuple[Tensor, Tensor]:
+    """Every frame of a video file, (N, C, H, W) uint8, and its presentation time in seconds (N,), ascending."""
+    from torchcodec.decoders import VideoDecoder
+
+    decoder = VideoDecoder(video_path)
+    batch = decoder.get_frames_in_range(0, len(decoder))
+    return batch.data, batch.pts_seconds.double()
+
+
+def decode_cached(video_path: Path | str, timestamps: list[float], tolerance_s: float,
+                  return_uint8: bool = False) -> Tensor:
+    """The frames nearest to `timestamps` (seconds in the file), float in [0, 1] (or uint8), like LeRobot's decoders."""
+    path = Path(video_path)
+    frames, pts = _decoded(str(path), path.stat().st_mtime_ns)
+    query = torch.tensor(timestamps, dtype=torch.float64)
+    after = torch.searchsorted(pts, query).clamp(1, len(pts) - 1)
+    nearer_before = (query - pts[after - 1]).abs() <= (pts[after] - query).abs()
+    index = torch.where(nearer_before, after - 1, after)
+    distance = (pts[index] - query).abs()
+    if (distance >= tolerance_s).any():
+        worst = int(distance.argmax())
+        raise FrameTimestampError(
+            f"{path}: no frame within {tolerance_s} s of {timestamps[worst]:.6f} s (nearest at {float(pts[index[worst]]):.6f} s)"
+        )
+    selected = frames[index]
+    return selected if return_uint8 else selected.float() / 255.0
+
+
+def install() -> None:
+    """Let LeRobotDataset decode with `video_backend=bcrl_frame_cache` (idempotent)."""
+    require_lerobot_version()
+    lerobot_decode = dataset_reader.decode_video_frames
+    if getattr(lerobot_decode, "bcrl_frame_cache", False):
+        return
+    reader_init = dataset_reader.DatasetReader.__init__
+
+    @functools.wraps(reader_init)
+    def init_reader(self, *args, **kwargs):
+        reader_init(self, *args, **kwargs)
+        if self._video_backend == BACKEND:
+            self._video_backend = FrameCacheBackend(BACKEND)
+
+    @functools.wraps(lerobot_decode)
+    def decode_video_frames(video_path, timestamps, tolerance_s, backend=None, return_uint8=False, is_depth=False):
+        if backend == BACKEND and not is_depth:
+            return decode_cached(video_path, timestamps, tolerance_s, return_uint8=return_uint8)
+        return lerobot_decode(video_path, timestamps, tolerance_s, backend, return_uint8=return_uint8, is_depth=is_depth)
+
+    decode_video_frames.bcrl_frame_cache = True
+    dataset_reader.decode_video_frames = decode_video_frames
+    dataset_reader.DatasetReader.__init__ = init_reader

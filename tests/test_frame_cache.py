@@ -1,0 +1,51 @@
+"""`video_backend=bcrl_frame_cache`: the same frames as LeRobot's own decoder, a clear error off the frame grid."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.video_utils import FrameTimestampError
+
+from lerobot_bcrl import frame_cache
+from lerobot_bcrl.features import IMAGE_KEY
+
+
+@pytest.fixture(scope="module")
+def video_dataset_root(tmp_path_factory):
+    from dataset_tools.record import RecordConfig, record
+
+    root = tmp_path_factory.mktemp("video") / "two_episodes"
+    # two episodes in one MP4 file (LeRobotDataset v3 concatenates them): the second starts at an offset
+    return record(RecordConfig(repo_id="local/two_episodes", root=root, n_episodes=2, episode_length=12, sigma=0.1,
+                               images=True, video=True))
+
+
+def test_cached_frames_equal_lerobots_decoder_in_every_episode(video_dataset_root):
+    lerobot_decoded = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend="torchcodec")
+    cached = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend=frame_cache.BACKEND)
+    assert len(list((video_dataset_root / "videos").rglob("*.mp4"))) == 1 and cached.num_episodes == 2
+    for index in range(len(cached)):  # the second episode's frames come from its offset in the shared file
+        frame, reference = cached[index][IMAGE_KEY], lerobot_decoded[index][IMAGE_KEY]
+        assert frame.dtype == reference.dtype == torch.float32 and frame.shape == reference.shape
+        assert torch.equal(frame, reference), f"frame {index} differs"
+    # the frames of different steps differ, so the comparison above could fail
+    assert not torch.equal(cached[0][IMAGE_KEY], cached[11][IMAGE_KEY])
+
+
+def test_spawned_dataloader_workers_decode_with_the_cache(video_dataset_root):
+    # lerobot-train's workers are spawned (fresh interpreters that load no plugin) and persistent
+    reference = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend="torchcodec")
+    cached = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend=frame_cache.BACKEND)
+    loader = torch.utils.data.DataLoader(cached, batch_size=len(cached), num_workers=1,
+                                         multiprocessing_context="spawn")
+    frames = next(iter(loader))[IMAGE_KEY]
+    assert torch.equal(frames, torch.stack([reference[i][IMAGE_KEY] for i in range(len(reference))]))
+
+
+def test_a_timestamp_off_the_frame_grid_names_the_file(video_dataset_root):
+    video = next((video_dataset_root / "videos").rglob("*.mp4"))
+    half_frame_s = 0.5 / LeRobotDataset("local/two_episodes", root=video_dataset_root).fps
+    assert frame_cache.decode_cached(video, [0.0, 2 * half_frame_s], 1e-4, return_uint8=True).dtype == torch.uint8
+    with pytest.raises(FrameTimestampError, match=video.name):
+        frame_cache.decode_cached(video, [half_frame_s], 1e-4)
