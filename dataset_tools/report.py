@@ -223,6 +223,35 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
     return "\n".join(lines) + "\n", cell_list
 
 
+TIME_PARTS = (  # logs.csv columns (seconds per iteration) and what they measure
+    ("collect_s", "collect (wall)"), ("learn_s", "learn (wall)"),
+    ("simulation_s", "simulation (workers' CPU)"), ("rendering_s", "rendering (workers' CPU)"),
+    ("policy_s", "policy in the workers (CPU)"), ("learner_data_s", "learner: minibatches and demo batches"),
+    ("bc_term_s", "learner: BC term"), ("update_s", "learner: PPO forward/backward, step"),
+)
+
+
+def timing_table(rows: list[dict]) -> str:
+    """Where each training run's time went, in seconds per 1,000 env steps (runs whose logs.csv times its parts)."""
+    lines = []
+    for r in rows:
+        log = read_log(Path(r["run"]))
+        training = np.isfinite(log.get("simulation_s", []))  # training iterations (not the starting validation)
+        if not training.any():  # an evaluation-only run, or one logged before its parts were timed
+            continue
+        env_steps = log["env_steps"][training]
+        steps_per_iteration = env_steps[0] if len(env_steps) == 1 else (env_steps[-1] - env_steps[0]) / (len(env_steps) - 1)
+        per_1k = 1000.0 / (steps_per_iteration * len(env_steps))
+        cells = [f"{per_1k * np.nansum(log[key]):.2f}" if key in log else "-" for key, _ in TIME_PARTS]
+        lines.append(f"| {r['method']} | {r.get('seed', '-')} | " + " | ".join(cells) + f" | `{r['run']}` |")
+    if not lines:
+        return ""
+    header = "| method | seed | " + " | ".join(name for _, name in TIME_PARTS) + " | run |"
+    return "\n".join(["", "Where the time goes (seconds per 1,000 env steps; the workers' parts are CPU time summed over"
+                      " workers, the learner's are wall time within learn)", "", header,
+                      "|---" * (len(TIME_PARTS) + 3) + "|", *lines]) + "\n"
+
+
 def read_log(run_dir: Path) -> dict[str, np.ndarray]:
     path = run_dir / "logs.csv"
     if not path.exists():
@@ -307,6 +336,7 @@ def report(cfg: ReportConfig) -> dict:
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     rows = [summarize_run(d) for d in run_dirs]
     tables, cells = markdown_tables(rows)
+    tables += timing_table(rows)
     (cfg.output_dir / "report.md").write_text(tables)
     (cfg.output_dir / "report.json").write_text(json.dumps({"runs": rows, "cells": cells}, indent=2))
     plots = plot_runs([(plot_label(r, rows), read_log(Path(r["run"]))) for r in rows], cfg.output_dir, cfg.smooth)

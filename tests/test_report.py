@@ -66,6 +66,26 @@ def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lo
         assert (tmp_path / "report" / name).stat().st_size > 10_000, name
 
 
+def test_where_the_time_goes_is_per_thousand_env_steps_of_training(lowdim_dataset_root, tmp_path):
+    run = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0], 2560)
+    rows = list(csv.DictReader((run / "logs.csv").open()))
+    rows.insert(0, {**rows[0], "env_steps": 0, "eval_return": 5})  # the starting policy's validation: no training
+    for i, row in enumerate(rows[1:], start=1):  # 5 iterations of 512 env steps
+        row.update(simulation_s=2.0 * i, rendering_s=0.5, policy_s=1.0, learner_data_s=0.1, bc_term_s=0.2, update_s=0.3)
+    with (run / "logs.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0], 0)  # logs without timings: no row
+    tables = report(ReportConfig(runs=[str(run), str(bc)], output_dir=tmp_path / "report"))["tables"]
+    (line,) = [line for line in tables.split("Where the time goes")[1].splitlines() if "`" in line]
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    per_1k = 1000 / (5 * 512)
+    simulation, rendering = cells[2 + 2], cells[2 + 3]
+    assert float(simulation) == pytest.approx(per_1k * 2.0 * (1 + 2 + 3 + 4 + 5), abs=0.01)
+    assert float(rendering) == pytest.approx(per_1k * 0.5 * 5, abs=0.01)
+
+
 def test_runs_on_one_dataset_share_a_row_however_its_root_was_spelled(lowdim_dataset_root, tmp_path, monkeypatch):
     monkeypatch.chdir(lowdim_dataset_root.parent)
     bc = fake_run(tmp_path / "bc", Path(lowdim_dataset_root.name), "BC", [100.0, 0.0], 0)  # relative, as typed

@@ -104,6 +104,9 @@ def test_bc_plus_rl_smoke_on_lift_through_the_real_commands(lowdim_dataset_root,
     rows = list(csv.DictReader((tmp_path / "bcrl" / "logs.csv").open()))
     assert float(rows[-1]["bc_loss"]) > 0 and rows[-1]["approx_kl"] != ""  # both terms were computed
     assert all(0 < float(row["bc_grad_share"]) <= 1 for row in rows)  # measured once per iteration
+    for part in ("simulation_s", "policy_s", "learner_data_s", "bc_term_s", "update_s"):  # where the time went
+        assert all(float(row[part]) > 0 for row in rows), part
+    assert all(float(row["rendering_s"]) == 0 for row in rows)  # low-dim envs render no camera
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
     for name in ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json"):
         assert (pretrained / name).exists(), name

@@ -82,6 +82,7 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     assert result["env_steps"] == 128 and result["eval_episodes"] == 1 and 0 < result["theta"] < 1
     (row,) = csv.DictReader((tmp_path / "bcrl" / "logs.csv").open())
     assert int(row["env_steps"]) == 128 and float(row["bc_loss"]) > 0  # the BC term ran on decoded frames
+    assert float(row["rendering_s"]) > 0 and float(row["simulation_s"]) > 0  # the camera's time, apart
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((pretrained / "config.json").read_text())["critic_observation"] == "privileged"
     eval_output = run_cli("lerobot-eval", f"--policy.path={pretrained}", "--env.type=bcrl_lift",

@@ -6,6 +6,7 @@ Actions are the 8-D delta layout of method.md (`lerobot_bcrl.geometry.ACTION_NAM
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -94,6 +95,7 @@ class LiftEnv(gym.Env):
         self._robosuite_rng_state = np.random.RandomState().get_state()
         self._step_count = 0
         self.n_clamped_actions = 0
+        self.render_s = 0.0  # seconds spent rendering the camera observation, over the env's life (timing reports)
         # Optional: one .rrd file per episode with what happened (and the policy's predictions, when the
         # policy runs in this process).
         self._rerun_dir = rerun_dir
@@ -246,6 +248,8 @@ class LiftEnv(gym.Env):
         ).astype(np.float32)
         obs: dict[str, Any] = {"agent_pos": agent_pos, "environment_state": environment_state}
         if self._camera is not None:
+            render_start = time.perf_counter()
             self._pixels = self._camera.render(self._data)
+            self.render_s += time.perf_counter() - render_start
             obs["pixels"] = {CAMERA_NAME: self._pixels}
         return obs

@@ -14,6 +14,7 @@ from lerobot_bcrl.stats import mean_ci95
 
 LOG_COLUMNS = [
     "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "collect_s", "learn_s", "worker_restarts",
+    "simulation_s", "rendering_s", "policy_s", "learner_data_s", "bc_term_s", "update_s",  # see report.TIME_PARTS
     "train_return", "train_success", "train_episodes",
     "loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
     "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",

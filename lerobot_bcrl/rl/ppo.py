@@ -131,10 +131,12 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
     value_loss = cfg.c2 * ppo["value_loss"]
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
+    bc_start = time.perf_counter()
     bc_loss, metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
     if cfg.term_weighting == "gradient_share" and theta > 0:
         metrics["bc_scale"] = bc_gradient_scale(agent.module, bc_loss, ppo_loss)
         bc_loss = metrics["bc_scale"] * bc_loss
+    bc_term_s = time.perf_counter() - bc_start  # the BC forward pass and its gradient-share scaling
     if measure_gradients:
         metrics.update(term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss))
 
@@ -143,7 +145,8 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     loss = theta * bc_loss + (1 - theta) * ppo_loss + value_loss
 
     metrics.update({name: float(value.detach()) for name, value in ppo.items()})
-    metrics.update(entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()), loss=float(loss.detach()))
+    metrics.update(entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()), loss=float(loss.detach()),
+                   bc_term_s=bc_term_s)
     return loss, metrics
 
 
@@ -175,19 +178,26 @@ def select_minibatch(agent: Agent, batch: dict, index: Tensor) -> dict:
 def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Trajectories, rewards: np.ndarray,
                cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
                demo_batches=None, bc_forward=None) -> dict[str, float]:
-    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics."""
+    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics and the
+    seconds spent reading minibatches (`learner_data_s`), in the BC term (`bc_term_s`) and in the rest of the
+    forward and backward passes (`update_s`)."""
+    update_start = time.perf_counter()
     batch = training_batch(trajectories, rewards, cfg)
     batch_size = batch["actions"].shape[0]
     agent.module.train()
     history: dict[str, list[float]] = {}
+    data_s = bc_term_s = 0.0
     for epoch in range(cfg.update_epochs):
         permutation = torch.randperm(batch_size)
         for start in range(0, batch_size, cfg.minibatch_size):
+            data_start = time.perf_counter()
             minibatch = select_minibatch(agent, batch, permutation[start : start + cfg.minibatch_size])
             theta = schedule_state.theta(schedule_cfg)
             demo_batch = next(demo_batches) if (theta > 0 and demo_batches is not None) else None
+            data_s += time.perf_counter() - data_start
             loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward,
                                       measure_gradients=epoch == 0 and start == 0)  # once per iteration
+            bc_term_s += metrics.pop("bc_term_s")
             optimizer.zero_grad()
             loss.backward()
             metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(agent.module.parameters(), cfg.max_grad_norm))
@@ -198,6 +208,8 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
     schedule_state.ppo_iteration += 1
     summary = {name: float(np.mean(values)) for name, values in history.items()}
     summary["explained_variance"] = explained_variance(batch["values"].numpy(), batch["returns"].numpy())
+    summary.update(learner_data_s=data_s, bc_term_s=bc_term_s,
+                   update_s=time.perf_counter() - update_start - data_s - bc_term_s)
     return summary
 
 
@@ -281,6 +293,7 @@ def finetune(cfg) -> dict:
             row = {"env_steps": env_steps, "ppo_iteration": schedule.ppo_iteration, "optim_step": schedule.optim_step,
                    "wall_s": time.time() - start_time, "collect_s": learn_start - collect_start,
                    "learn_s": time.time() - learn_start, "worker_restarts": workers.restarts, **metrics, **train,
+                   **{f"{part}_s": seconds for part, seconds in trajectories.seconds.items()},
                    "theta": schedule.theta(cfg.schedule)}  # theta for the next update
             if cfg.eval_freq and env_steps - last_eval >= cfg.eval_freq:
                 row.update(validate())

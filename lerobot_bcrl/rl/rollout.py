@@ -64,6 +64,9 @@ class Trajectories:
     dones: np.ndarray  # (T, N) 1.0 where the episode ended with this step
     last_values: np.ndarray  # (N,) V of the observation after the last step
     episodes: list[EpisodeStats] = field(default_factory=list)  # episodes that ended in this rollout
+    # Seconds this rollout spent per part (summed over workers: CPU time, not wall time): "policy" (preprocessing,
+    # sampling, values), "simulation" (env steps and resets less rendering), "rendering" (the camera observations).
+    seconds: dict[str, float] = field(default_factory=dict)
 
     @staticmethod
     def concatenate(parts: list[Trajectories]) -> Trajectories:
@@ -79,6 +82,7 @@ class Trajectories:
             dones=cat([p.dones for p in parts]),
             last_values=np.concatenate([p.last_values for p in parts]),
             episodes=[e for p in parts for e in p.episodes],
+            seconds={k: sum(p.seconds.get(k, 0.0) for p in parts) for k in parts[0].seconds},
         )
 
 
@@ -156,6 +160,8 @@ class RolloutWorker:
         truncation_values = np.zeros((steps_per_env, n_envs), np.float32)
         dones = np.zeros((steps_per_env, n_envs), np.float32)
         finished: list[EpisodeStats] = []
+        env_s, render_before = 0.0, self._render_seconds()
+        start = time.perf_counter()
         for t in range(steps_per_env):
             raw_obs = stack_observations(self.observations)
             actions, log_probs, values = self.agent.sample(self.agent.observation_batch(raw_obs))
@@ -165,7 +171,9 @@ class RolloutWorker:
             value_steps.append(values.numpy())
             env_actions = self.agent.to_env_action(actions).numpy()
             for i, env in enumerate(self.envs):
+                step_start = time.perf_counter()
                 obs, reward, terminated, truncated, info = env.step(env_actions[i])
+                env_s += time.perf_counter() - step_start
                 self.running[i].record_step(reward, info)
                 rewards[t, i] = reward
                 obs = flatten_observation(obs)
@@ -176,10 +184,15 @@ class RolloutWorker:
                     dones[t, i] = 1.0
                     finished.append(self.running[i])
                     self.episode_index[i] += 1
+                    reset_start = time.perf_counter()
                     obs, self.running[i] = self._reset(i)
+                    env_s += time.perf_counter() - reset_start
                 self.observations[i] = obs
         last_values = self.agent.value(self.agent.observation_batch(stack_observations(self.observations)))
         self.iteration += 1
+        rendering_s = self._render_seconds() - render_before
+        seconds = {"policy": time.perf_counter() - start - env_s, "simulation": env_s - rendering_s,
+                   "rendering": rendering_s}
         return Trajectories(
             observations={k: np.stack([o[k] for o in obs_steps]) for k in obs_steps[0]},
             actions=np.stack(action_steps),
@@ -190,7 +203,12 @@ class RolloutWorker:
             dones=dones,
             last_values=last_values.numpy(),
             episodes=finished,
+            seconds=seconds,
         )
+
+    def _render_seconds(self) -> float:
+        """The envs' camera time so far (`LiftEnv.render_s`; 0 for envs that do not count it)."""
+        return sum(getattr(env.unwrapped, "render_s", 0.0) for env in self.envs)
 
     @torch.no_grad()
     def evaluate(self, state_dict: dict[str, torch.Tensor] | None, seeds: list[int],
