@@ -26,6 +26,7 @@ from dataset_tools.experts import ScriptedLiftExpert
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from lerobot_bcrl import geometry
 from lerobot_bcrl.envs import controller
+from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.robot.mujoco_sawyer import MujocoSawyer
 from lerobot_bcrl.robot.kinematics import SAWYER_ARM_JOINTS, KinematicsError
 
@@ -454,7 +455,7 @@ def make_demo_bags(cfg: MakeDemoBagsConfig) -> dict[str, list[Path]]:
     shutil.rmtree(partial_dir)
     summary = outcome_summary(written["ground_truth"])
     if summary:
-        _write_atomically(out_dir / OUTCOMES_FILE, json.dumps(summary, indent=2))
+        write_json_atomically(out_dir / OUTCOMES_FILE, summary)
     return written
 
 
@@ -484,13 +485,7 @@ def check_resumable(cfg: MakeDemoBagsConfig) -> None:
             )
     (out_dir / "ground_truth").mkdir(parents=True, exist_ok=True)
     (out_dir / OUTCOMES_FILE).unlink(missing_ok=True)  # rewritten from the episodes at the end
-    _write_atomically(settings_file, json.dumps(current, indent=2))
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    staged = path.with_name(path.name + ".partial")
-    staged.write_text(text)
-    os.replace(staged, path)
+    write_json_atomically(settings_file, current)
 
 
 def main() -> None:

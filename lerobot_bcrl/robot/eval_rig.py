@@ -12,9 +12,7 @@ refused unless `--allow_rate_mismatch=true` (to study what a mismatch does, as t
 
 import json
 import logging
-import os
 import sys
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_bcrl.features import ENV_STATE_DIM
+from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.robot.kinematics import KinematicsError
 
 log = logging.getLogger(__name__)
@@ -154,7 +153,7 @@ def eval_rig(cfg: EvalRigConfig) -> dict:
         "per_episode": episodes,
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
     }
-    _write_json_atomically(Path(cfg.output_dir) / "eval_info.json", result)
+    write_json_atomically(Path(cfg.output_dir) / "eval_info.json", result)
     return result
 
 
@@ -170,13 +169,6 @@ def aggregate_outcomes(episodes: list[dict]) -> dict:
 
 def _mean(episodes: list[dict], key: str) -> float:
     return float(np.mean([e[key] for e in episodes])) if episodes else 0.0
-
-
-def _write_json_atomically(path: Path, payload: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        json.dump(payload, tmp, indent=2)
-    os.replace(tmp.name, path)
 
 
 def main() -> None:
