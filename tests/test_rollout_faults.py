@@ -281,19 +281,19 @@ def assert_replaced_once_and_unchanged(output: str, output_dir: Path, unfaulted_
 
 
 @pytest.mark.slow
-def test_bcrl_finetune_goes_on_after_a_worker_is_killed(backend, lowdim_dataset_root, unfaulted_run, tmp_path):
-    """kill -9 of one rollout worker of a running bcrl-finetune: the run replaces it, logs it and finishes with the
-    weights and final evaluation of an unfaulted run on the process backend (its iterations hold whole episodes)."""
+def test_bcrl_finetune_goes_on_after_a_worker_is_killed(lowdim_dataset_root, unfaulted_run, tmp_path):
+    """kill -9 of one rollout worker of a running bcrl-finetune (the default process backend): the run replaces it,
+    logs it and finishes with the weights and final evaluation of an unfaulted run (its iterations hold whole
+    episodes). Under Ray the same runs through the lost-node test below and the library-level tests above."""
 
     def kill_a_worker(run):
-        workers = rollout_worker_pids(run.pid, backend)
+        workers = rollout_worker_pids(run.pid, "process")
         assert len(workers) == 2, workers
         os.kill(workers[0], signal.SIGKILL)
 
-    output = run_with_a_fault(finetune_args(lowdim_dataset_root, tmp_path, backend), tmp_path, kill_a_worker)
+    output = run_with_a_fault(finetune_args(lowdim_dataset_root, tmp_path, "process"), tmp_path, kill_a_worker)
     warning = assert_replaced_once_and_unchanged(output, tmp_path, unfaulted_run)
-    if backend == "process":
-        assert "died with exit code -9 (SIGKILL: out of memory?)" in warning
+    assert "died with exit code -9 (SIGKILL: out of memory?)" in warning
 
 
 @pytest.mark.slow
