@@ -226,7 +226,7 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
 TIME_PARTS = (  # logs.csv columns (seconds per iteration) and what they measure
     ("collect_s", "collect (wall)"), ("learn_s", "learn (wall)"),
     ("simulation_s", "simulation (workers' CPU)"), ("rendering_s", "rendering (workers' CPU)"),
-    ("policy_s", "policy in the workers (CPU)"), ("learner_data_s", "learner: minibatches and demo batches"),
+    ("policy_s", "policy and bookkeeping in the workers (CPU)"), ("learner_data_s", "learner: minibatches and demo batches"),
     ("bc_term_s", "learner: BC term"), ("update_s", "learner: PPO forward/backward, step"),
 )
 

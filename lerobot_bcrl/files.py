@@ -8,13 +8,9 @@ import tempfile
 from pathlib import Path
 
 
-def write_text_atomically(path: Path, text: str) -> None:
+def write_json_atomically(path: Path, payload) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as tmp:
-        tmp.write(text)
+        json.dump(payload, tmp, indent=2)
     os.replace(tmp.name, path)
-
-
-def write_json_atomically(path: Path, payload) -> None:
-    write_text_atomically(path, json.dumps(payload, indent=2))

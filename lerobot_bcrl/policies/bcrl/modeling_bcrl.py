@@ -145,7 +145,6 @@ class BCRLModel(nn.Module):
             grasp_pos_normalized=self.grasp_pos_head(keypoints),
         )
 
-
     def value(self, batch: dict[str, Tensor], keypoints: Tensor, trunk: Tensor) -> Tensor | None:
         if self.value_head is not None:
             return self.value_head(trunk).squeeze(-1)
