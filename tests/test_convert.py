@@ -25,8 +25,8 @@ from dataset_tools.make_demo_bags import (
 )
 from lerobot_bcrl import features as F
 from lerobot_bcrl import geometry as G
-from lerobot_bcrl.robot.kinematics import UrdfKinematics
 from lerobot_bcrl.robot.mujoco_sawyer import GRIP_SITE_IN_RIGHT_HAND_POS_M, GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW
+from lerobot_bcrl.robot.sim_rig import sawyer_kinematics
 
 URDF = Path("/work/shared/robots/sawyer/sawyer.urdf")
 POS_TOL_M = 1e-3  # the bound per step
@@ -50,7 +50,7 @@ def convert_cfg(tmp_path, input_path, **kw) -> ConvertConfig:
     return ConvertConfig(**base)
 
 def kinematics_factory():
-    return UrdfKinematics(URDF, tool_offset_pos_m=GRIP_SITE_IN_RIGHT_HAND_POS_M, tool_offset_quat_xyzw=GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW)
+    return sawyer_kinematics(URDF)
 
 def ground_truth_actions(demo, grid_time_s):
     gt = PoseStream("gt", demo.time_s, demo.eef_pos_base_m, demo.eef_quat_base_xyzw)

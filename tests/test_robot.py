@@ -13,7 +13,8 @@ import pytest
 from lerobot_bcrl import geometry as G
 from lerobot_bcrl.robot.command import CommandConfig, DeltaActionCommander
 from lerobot_bcrl.robot.kinematics import KinematicsError, UrdfKinematics
-from lerobot_bcrl.robot.mujoco_sawyer import GRIP_SITE_IN_RIGHT_HAND_POS_M, GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW, MujocoSawyer
+from lerobot_bcrl.robot.mujoco_sawyer import MujocoSawyer
+from lerobot_bcrl.robot.sim_rig import sawyer_kinematics
 from lerobot_bcrl.robot.transport import GuardedCommandPath, MujocoSawyerTransport
 
 URDF = Path("/work/shared/robots/sawyer/sawyer.urdf")
@@ -23,7 +24,7 @@ START_QPOS = np.array([0.0, -1.18, 0.0, 2.18, 0.0, 0.57, 3.3161])
 
 @pytest.fixture(scope="module")
 def kin():
-    with UrdfKinematics(URDF, tool_offset_pos_m=GRIP_SITE_IN_RIGHT_HAND_POS_M, tool_offset_quat_xyzw=GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW) as k:
+    with sawyer_kinematics(URDF) as k:
         yield k
 
 
