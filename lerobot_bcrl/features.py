@@ -7,8 +7,9 @@ from __future__ import annotations
 
 from lerobot_bcrl.geometry import ACTION_DIM, ACTION_NAMES
 
+IMAGES_PREFIX = "observation.images."  # LeRobot names a camera <name>'s frames `observation.images.<name>`
 CAMERA_NAME = "agentview"
-IMAGE_KEY = f"observation.images.{CAMERA_NAME}"
+IMAGE_KEY = f"{IMAGES_PREFIX}{CAMERA_NAME}"
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
 ACTION_KEY = "action"

@@ -56,7 +56,7 @@ class ConvertConfig:
 
 def camera_keys(cfg: ConvertConfig) -> dict[str, str]:
     """Camera name -> feature key; 'agentview' maps onto the simulated datasets' image key."""
-    return {name: f"observation.images.{name}" for name in cfg.topics.cameras} if cfg.images else {}
+    return {name: f"{F.IMAGES_PREFIX}{name}" for name in cfg.topics.cameras} if cfg.images else {}
 
 
 def dataset_features(cfg: ConvertConfig) -> dict[str, dict]:

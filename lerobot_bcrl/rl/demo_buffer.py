@@ -11,6 +11,8 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from lerobot_bcrl.features import IMAGES_PREFIX
+
 
 class DemoBuffer:
     def __init__(self, dataset, batch_size: int, seed: int, preprocessor):
@@ -25,7 +27,7 @@ class DemoBuffer:
 
     @staticmethod
     def _compact(key: str, value: Tensor) -> Tensor:
-        return (value * 255).round().to(torch.uint8) if key.startswith("observation.images.") else value
+        return (value * 255).round().to(torch.uint8) if key.startswith(IMAGES_PREFIX) else value
 
     def __iter__(self):
         return self

@@ -20,7 +20,7 @@ import draccus
 import numpy as np
 from tqdm import tqdm
 
-from lerobot_bcrl.features import ENV_STATE_DIM
+from lerobot_bcrl.features import ENV_STATE_DIM, IMAGES_PREFIX
 from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.robot.kinematics import KinematicsError
 
@@ -82,7 +82,7 @@ def policy_observation(rig, image_key: str | None) -> dict:
     """What the converter wrote for a recording, from the rig now: state, zero object state, the camera."""
     observation = {"agent_pos": rig.state().astype(np.float32), "environment_state": np.zeros(ENV_STATE_DIM, np.float32)}
     if image_key is not None:
-        observation["pixels"] = {image_key.removeprefix("observation.images."): rig.render()}
+        observation["pixels"] = {image_key.removeprefix(IMAGES_PREFIX): rig.render()}
     return observation
 
 
@@ -126,7 +126,7 @@ def eval_rig(cfg: EvalRigConfig) -> dict:
     fps = dataset_fps(cfg.policy_path, cfg.dataset_root)
     run_fps, command_fps = loop_rates(cfg, fps)
     runner = PolicyRunner(str(cfg.policy_path), cfg.device)
-    images = [key for key in runner.config.input_features if key.startswith("observation.images.")]
+    images = [key for key in runner.config.input_features if key.startswith(IMAGES_PREFIX)]
     image_key = images[0] if images else None
     image_size = runner.config.input_features[image_key].shape[-1] if image_key else None
     commander = DeltaActionCommander(sawyer_kinematics(cfg.urdf), CommandConfig(fps=command_fps))
