@@ -225,30 +225,35 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
 
 TIME_PARTS = (  # logs.csv columns (seconds per iteration) and what they measure
     ("collect_s", "collect (wall)"), ("learn_s", "learn (wall)"),
-    ("simulation_s", "simulation (workers' CPU)"), ("rendering_s", "rendering (workers' CPU)"),
-    ("policy_s", "policy and bookkeeping in the workers (CPU)"), ("learner_data_s", "learner: minibatches and demo batches"),
-    ("bc_term_s", "learner: BC term"), ("update_s", "learner: PPO forward/backward, step"),
+    ("simulation_s", "simulation (workers' wall time, summed)"), ("rendering_s", "rendering (workers' wall time, summed)"),
+    ("policy_s", "policy and bookkeeping in the workers (wall time, summed)"),
+    ("learner_data_s", "learner: minibatches and demo batches"),
+    ("bc_term_s", "learner: BC forward and gradient-share norms"), ("update_s", "learner: PPO forward/backward, step"),
 )
 
 
 def timing_table(rows: list[dict]) -> str:
-    """Where each training run's time went, in seconds per 1,000 env steps (runs whose logs.csv times its parts)."""
+    """Where each training run's time went, in seconds per 1,000 env steps (runs whose logs.csv times its parts).
+
+    A row's env steps are its env_steps less the previous row's (0 before the first), so a log that starts with
+    the untimed starting validation, holds one iteration, or was resumed is divided by the steps its timed rows
+    collected."""
     lines = []
     for r in rows:
         log = read_log(Path(r["run"]))
-        training = np.isfinite(log.get("simulation_s", []))  # training iterations (not the starting validation)
-        if not training.any():  # an evaluation-only run, or one logged before its parts were timed
+        timed = np.isfinite(log.get("simulation_s", []))  # training iterations (not the starting validation)
+        if not timed.any():  # an evaluation-only run, or one logged before its parts were timed
             continue
-        env_steps = log["env_steps"][training]
-        steps_per_iteration = env_steps[0] if len(env_steps) == 1 else (env_steps[-1] - env_steps[0]) / (len(env_steps) - 1)
-        per_1k = 1000.0 / (steps_per_iteration * len(env_steps))
-        cells = [f"{per_1k * np.nansum(log[key]):.2f}" if key in log else "-" for key, _ in TIME_PARTS]
-        lines.append(f"| {r['method']} | {r.get('seed', '-')} | " + " | ".join(cells) + f" | `{r['run']}` |")
+        steps_collected = np.diff(log["env_steps"], prepend=0.0)[timed].sum()
+        per_1k = 1000.0 / steps_collected
+        cells = [f"{per_1k * np.nansum(log[key][timed]):.2f}" if key in log else "-" for key, _ in TIME_PARTS]
+        seed = "-" if r.get("seed") is None else r["seed"]
+        lines.append(f"| {r['method']} | {seed} | " + " | ".join(cells) + f" | `{r['run']}` |")
     if not lines:
         return ""
     header = "| method | seed | " + " | ".join(name for _, name in TIME_PARTS) + " | run |"
-    return "\n".join(["", "Where the time goes (seconds per 1,000 env steps; the workers' parts are CPU time summed over"
-                      " workers, the learner's are wall time within learn)", "", header,
+    return "\n".join(["", "Where the time goes (seconds per 1,000 env steps; the workers' parts are wall time in each"
+                      " worker, summed over workers; the learner's are wall time within learn)", "", header,
                       "|---" * (len(TIME_PARTS) + 3) + "|", *lines]) + "\n"
 
 

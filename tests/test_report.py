@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
-from dataset_tools.report import (ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
+from dataset_tools.report import (TIME_PARTS, ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
                                   wilson_ci95)
 from lerobot_bcrl.features import LIFT_REWARD
 from lerobot_bcrl.rl.logger import LOG_COLUMNS
@@ -24,7 +24,7 @@ def episode_dicts(returns: list[float]) -> list[dict]:
 
 
 def fake_run(run_dir: Path, dataset_root: Path, method: str, returns: list[float], env_steps: int,
-             policy_env_steps: int = 0, seed: int = 1000,
+             policy_env_steps: int = 0, seed: int | None = 1000,
              policy_path: Path | None = None) -> Path:
     run_dir.mkdir(parents=True)
     result = {"method": method, "env_steps": env_steps, "dataset_root": str(dataset_root),
@@ -66,24 +66,43 @@ def test_report_tables_recompute_returns_recovered_share_and_wilson_intervals(lo
         assert (tmp_path / "report" / name).stat().st_size > 10_000, name
 
 
-def test_where_the_time_goes_is_per_thousand_env_steps_of_training(lowdim_dataset_root, tmp_path):
-    run = fake_run(tmp_path / "bcrl", lowdim_dataset_root, "BC+RL", [300.0], 2560)
-    rows = list(csv.DictReader((run / "logs.csv").open()))
-    rows.insert(0, {**rows[0], "env_steps": 0, "eval_return": 5})  # the starting policy's validation: no training
-    for i, row in enumerate(rows[1:], start=1):  # 5 iterations of 512 env steps
-        row.update(simulation_s=2.0 * i, rendering_s=0.5, policy_s=1.0, learner_data_s=0.1, bc_term_s=0.2, update_s=0.3)
+def write_timed_log(run: Path, env_steps: list[int], timed_from: int) -> dict[str, float]:
+    """logs.csv with rows at env_steps, each from index timed_from on timing its parts; the seconds per row."""
+    seconds = dict(collect_s=3.0, learn_s=4.0, simulation_s=2.0, rendering_s=0.5, policy_s=1.0, learner_data_s=0.1,
+                   bc_term_s=0.2, update_s=0.3)
     with (run / "logs.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, LOG_COLUMNS, extrasaction="ignore")
         writer.writeheader()
-        writer.writerows(rows)
-    bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0], 0)  # logs without timings: no row
-    tables = report(ReportConfig(runs=[str(run), str(bc)], output_dir=tmp_path / "report"))["tables"]
-    (line,) = [line for line in tables.split("Where the time goes")[1].splitlines() if "`" in line]
+        for i, steps in enumerate(env_steps):
+            writer.writerow({"env_steps": steps, "eval_return": 5, **(seconds if i >= timed_from else {})})
+    return seconds
+
+
+def time_cells(tables: str, run: Path) -> dict[str, float]:
+    (line,) = [line for line in tables.split("Where the time goes")[1].splitlines() if f"`{run}`" in line]
     cells = [c.strip() for c in line.split("|")[1:-1]]
-    per_1k = 1000 / (5 * 512)
-    simulation, rendering = cells[2 + 2], cells[2 + 3]
-    assert float(simulation) == pytest.approx(per_1k * 2.0 * (1 + 2 + 3 + 4 + 5), abs=0.01)
-    assert float(rendering) == pytest.approx(per_1k * 0.5 * 5, abs=0.01)
+    return {"seed": cells[1], **{key: float(cell) for (key, _), cell in zip(TIME_PARTS, cells[2:-1], strict=True)}}
+
+
+def test_where_the_time_goes_is_per_thousand_env_steps_of_the_timed_iterations(lowdim_dataset_root, tmp_path):
+    # 5 iterations of 512 env steps after the starting policy's untimed validation at 0
+    full = fake_run(tmp_path / "full", lowdim_dataset_root, "BC+RL", [300.0], 2560)
+    seconds = write_timed_log(full, [0, 512, 1024, 1536, 2048, 2560], timed_from=1)
+    # runs resumed from older logs whose rows before the checkpoint predate the timings: three timed iterations,
+    # and one (its env_steps, 1536, is not its iteration's steps)
+    resumed = fake_run(tmp_path / "resumed", lowdim_dataset_root, "BC+RL", [300.0], 2560, seed=None)
+    write_timed_log(resumed, [0, 512, 1024, 1536, 2048, 2560], timed_from=3)
+    single = fake_run(tmp_path / "single", lowdim_dataset_root, "BC+RL", [300.0], 1536)
+    write_timed_log(single, [0, 512, 1024, 1536], timed_from=3)
+    bc = fake_run(tmp_path / "bc", lowdim_dataset_root, "BC", [100.0], 0)  # logs without timings: no row
+    tables = report(ReportConfig(runs=[str(full), str(resumed), str(single), str(bc)],
+                                 output_dir=tmp_path / "report"))["tables"]
+    for run in (full, resumed, single):  # every part, each run: its seconds per iteration over 512 env steps
+        cells = time_cells(tables, run)
+        for key, per_iteration in seconds.items():
+            assert cells[key] == pytest.approx(1000 / 512 * per_iteration, abs=0.01), (run.name, key)
+    assert time_cells(tables, full)["seed"] == "1000" and time_cells(tables, resumed)["seed"] == "-"
+    assert f"`{bc}`" not in tables.split("Where the time goes")[1]
 
 
 def test_runs_on_one_dataset_share_a_row_however_its_root_was_spelled(lowdim_dataset_root, tmp_path, monkeypatch):

@@ -5,7 +5,6 @@ from the workers, update, evaluate, checkpoint). Around it, a module each: confi
 build.py, rollout.py (workers), schedule.py (theta_t), demo_buffer.py, checkpoint.py, logger.py.
 """
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.rl.agent import Agent, BCRLAgent
 from lerobot_bcrl.rl.build import build_policy, reset_exploration_std, start_workers
 from lerobot_bcrl.rl.checkpoint import (better_on_validation, load_training_state, point_symlink, policy_env_steps,
@@ -136,7 +136,7 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     if cfg.term_weighting == "gradient_share" and theta > 0:
         metrics["bc_scale"] = bc_gradient_scale(agent.module, bc_loss, ppo_loss)
         bc_loss = metrics["bc_scale"] * bc_loss
-    bc_term_s = time.perf_counter() - bc_start  # the BC forward pass and its gradient-share scaling
+    bc_term_s = time.perf_counter() - bc_start  # the BC forward pass and the gradient-share norms (not its backward)
     if measure_gradients:
         metrics.update(term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss))
 
@@ -179,8 +179,8 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
                cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
                demo_batches=None, bc_forward=None) -> dict[str, float]:
     """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics and the
-    seconds spent reading minibatches (`learner_data_s`), in the BC term (`bc_term_s`) and in the rest of the
-    forward and backward passes (`update_s`)."""
+    seconds spent reading minibatches (`learner_data_s`), in the BC term's forward pass and gradient-share norms
+    (`bc_term_s`) and in the rest: PPO's forward pass, the joint loss's backward pass and the step (`update_s`)."""
     update_start = time.perf_counter()
     batch = training_batch(trajectories, rewards, cfg)
     batch_size = batch["actions"].shape[0]
@@ -323,5 +323,5 @@ def finetune(cfg) -> dict:
               "select": cfg.select, "selected_env_steps": best["env_steps"] if best else env_steps,
               "validation": {**best, "seed_offset": VALIDATION_SEED_OFFSET, "episodes": cfg.eval_episodes} if best else None,
               **final, "episodes": [asdict(e) for e in episodes]}
-    (cfg.output_dir / "eval_final.json").write_text(json.dumps(result, indent=2))
+    write_json_atomically(cfg.output_dir / "eval_final.json", result)
     return result
