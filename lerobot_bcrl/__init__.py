@@ -6,8 +6,6 @@ policy type `bcrl`, and lets LeRobotDataset decode with `video_backend=bcrl_fram
 
 from lerobot_bcrl import envs  # noqa: F401  (registers EnvConfig "bcrl_lift" and the gym id)
 from lerobot_bcrl.policies import bcrl  # noqa: F401  (registers PreTrainedConfig "bcrl")
-from lerobot_bcrl import frame_cache
-
-frame_cache.install()
+from lerobot_bcrl import frame_cache  # noqa: F401  (installs the video backend bcrl_frame_cache)
 
 __version__ = "0.1.0"

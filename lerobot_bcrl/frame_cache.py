@@ -3,16 +3,19 @@
 LeRobotDataset decodes every sample's frame from its MP4 (seek to the key frame, decode up to the frame): for a
 128x128 camera that costs about as much as the `bcrl` model's whole training step on a CPU, so the model waits on the
 data ([RESULTS](../docs/RESULTS.md#bc-training-throughput)). This backend decodes a whole video file the first time a
-process asks for one of its frames (torchcodec, in order, no seeking), keeps the frames as uint8 (49 KB a 128x128
+process asks for one of its frames (torchcodec, in order, no seeking; PyAV where torchcodec cannot load, e.g. without
+FFmpeg's shared libraries), keeps the frames as uint8 (49 KB a 128x128
 frame: about 1 GB per 20,000 frames, in each DataLoader worker that reads them) and answers each query by the nearest
-frame, within LeRobot's timestamp tolerance as its own decoders check it.
+frame, within LeRobot's timestamp tolerance as its own decoders check it. `clear()` lets the decoded videos go once
+their frames are copied elsewhere (bcrl-finetune's demo buffer).
 
 LeRobot picks its decoder by name inside `lerobot.datasets.dataset_reader`; `install()` wraps that function so that
 this name is understood and every other name goes to LeRobot's decoder unchanged (one LeRobot version, checked like
 `policies/bcrl/aux_targets.py`). Importing `lerobot_bcrl` (as lerobot-train's plugin loading does) installs it.
 lerobot-train's DataLoader workers are spawned, fresh interpreters that unpickle the dataset without loading plugins:
-so a reader built with this backend holds its name as a `FrameCacheBackend`, a `str` whose unpickling imports this
-module, which installs the decoder in the worker before its first frame.
+so a dataset, and a reader, built with this backend hold its name as a `FrameCacheBackend`, a `str` whose unpickling
+imports this module, which installs the decoder in the worker before its first frame (also when the worker builds the
+reader itself).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import functools
 from pathlib import Path
 
 import torch
-from lerobot.datasets import dataset_reader
+from lerobot.datasets import dataset_reader, lerobot_dataset
 from lerobot.datasets.video_utils import FrameTimestampError
 from torch import Tensor
 
@@ -38,11 +41,36 @@ class FrameCacheBackend(str):
 @functools.lru_cache(maxsize=None)
 def _decoded(video_path: str, mtime_ns: int) -> tuple[Tensor, Tensor]:
     """Every frame of a video file, (N, C, H, W) uint8, and its presentation time in seconds (N,), ascending."""
-    from torchcodec.decoders import VideoDecoder
+    try:  # torchcodec loads FFmpeg's shared libraries on import or on its first decoder
+        from torchcodec.decoders import VideoDecoder
 
-    decoder = VideoDecoder(video_path)
+        decoder = VideoDecoder(video_path)
+    except (ImportError, OSError, RuntimeError):
+        return _decoded_with_pyav(video_path)
     batch = decoder.get_frames_in_range(0, len(decoder))
     return batch.data, batch.pts_seconds.double()
+
+
+def _decoded_with_pyav(video_path: str) -> tuple[Tensor, Tensor]:
+    """`_decoded` with PyAV (LeRobot's other decoder, bundling its own FFmpeg): RGB frames in order."""
+    import av
+
+    frames, pts_s = [], []
+    with av.open(video_path) as container:
+        stream = container.streams.video[0]
+        for frame in container.decode(stream):
+            if frame.pts is None:
+                continue
+            frames.append(torch.from_numpy(frame.to_ndarray(format="rgb24")).permute(2, 0, 1))
+            pts_s.append(float(frame.pts * stream.time_base))
+    pts = torch.tensor(pts_s, dtype=torch.float64)
+    order = pts.argsort()
+    return torch.stack(frames)[order].contiguous(), pts[order]
+
+
+def clear() -> None:
+    """Forget every decoded video in this process (the next query decodes its file again)."""
+    _decoded.cache_clear()
 
 
 def decode_cached(video_path: Path | str, timestamps: list[float], tolerance_s: float,
@@ -71,11 +99,18 @@ def install() -> None:
     if getattr(lerobot_decode, "bcrl_frame_cache", False):
         return
     reader_init = dataset_reader.DatasetReader.__init__
+    dataset_init = lerobot_dataset.LeRobotDataset.__init__
 
     @functools.wraps(reader_init)
     def init_reader(self, *args, **kwargs):
         reader_init(self, *args, **kwargs)
         if self._video_backend == BACKEND:
+            self._video_backend = FrameCacheBackend(BACKEND)
+
+    @functools.wraps(dataset_init)
+    def init_dataset(self, *args, **kwargs):
+        dataset_init(self, *args, **kwargs)
+        if self._video_backend == BACKEND:  # a reader the dataset builds later (in a worker) gets the name from here
             self._video_backend = FrameCacheBackend(BACKEND)
 
     @functools.wraps(lerobot_decode)
@@ -87,3 +122,7 @@ def install() -> None:
     decode_video_frames.bcrl_frame_cache = True
     dataset_reader.decode_video_frames = decode_video_frames
     dataset_reader.DatasetReader.__init__ = init_reader
+    lerobot_dataset.LeRobotDataset.__init__ = init_dataset
+
+
+install()  # on import, so that unpickling a FrameCacheBackend in a fresh interpreter is enough

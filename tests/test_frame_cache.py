@@ -43,6 +43,35 @@ def test_spawned_dataloader_workers_decode_with_the_cache(video_dataset_root):
     assert torch.equal(frames, torch.stack([reference[i][IMAGE_KEY] for i in range(len(reference))]))
 
 
+def test_a_worker_that_builds_the_reader_itself_decodes_with_the_cache(video_dataset_root):
+    # a dataset whose reader was not built yet (LeRobotDataset builds it on first access): the spawned worker builds
+    # it from the dataset's own backend name, which must install the decoder when unpickled
+    cached = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend=frame_cache.BACKEND)
+    expected = torch.stack([cached[i][IMAGE_KEY] for i in range(len(cached))])
+    cached.reader = None
+    loader = torch.utils.data.DataLoader(cached, batch_size=len(cached), num_workers=1,
+                                         multiprocessing_context="spawn")
+    assert torch.equal(next(iter(loader))[IMAGE_KEY], expected)
+
+
+def test_pyav_fallback_decodes_the_frames_lerobots_pyav_decoder_gives(video_dataset_root):
+    from lerobot.datasets.video_utils import decode_video_frames_pyav
+
+    video = next((video_dataset_root / "videos").rglob("*.mp4"))
+    frames, pts = frame_cache._decoded_with_pyav(str(video))
+    assert len(frames) == 24 and bool((pts.diff() > 0).all())  # two episodes of 12 frames, in time order
+    reference = decode_video_frames_pyav(video, pts.tolist(), 1e-4, return_uint8=True)
+    assert frames.dtype == torch.uint8 and torch.equal(frames, reference)
+
+
+def test_clear_forgets_the_decoded_videos(video_dataset_root):
+    video = next((video_dataset_root / "videos").rglob("*.mp4"))
+    frame_cache.decode_cached(video, [0.0], 1e-4)
+    assert frame_cache._decoded.cache_info().currsize >= 1
+    frame_cache.clear()
+    assert frame_cache._decoded.cache_info().currsize == 0
+
+
 def test_a_timestamp_off_the_frame_grid_names_the_file(video_dataset_root):
     video = next((video_dataset_root / "videos").rglob("*.mp4"))
     half_frame_s = 0.5 / LeRobotDataset("local/two_episodes", root=video_dataset_root).fps

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from lerobot_bcrl import frame_cache
 from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.rl.agent import Agent, BCRLAgent
 from lerobot_bcrl.rl.build import build_policy, reset_exploration_std, start_workers
@@ -251,6 +252,7 @@ def finetune(cfg) -> dict:
     workers = start_workers(cfg, policy, preprocessor, postprocessor, cfg.seed + 104_729 * schedule.ppo_iteration)
     demo_batches = (DemoBuffer(dataset, cfg.bc_batch_size, cfg.seed + schedule.ppo_iteration, preprocessor)
                     if env_steps < cfg.total_env_steps else None)  # an evaluation-only run never reads them
+    frame_cache.clear()  # the buffer holds its own copy of the frames
     logger = RunLogger(cfg, env_steps if cfg.resume else None)
 
     def evaluate(n_episodes: int, seed_offset: int) -> tuple[dict, list]:
