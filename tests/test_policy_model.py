@@ -116,6 +116,10 @@ def test_privileged_critic_reads_the_simulator_state_and_the_actor_acts_without_
     without_state = {key: v for key, v in batch.items() if key != ENV_STATE_KEY}
     assert torch.equal(policy.select_action(without_state), policy.select_action(batch))
     assert policy.model(without_state).value is None
+    # but PPO cannot go on without a value: a clear error, not a None in the advantages
+    for needs_value in (agent.value, agent.sample, lambda obs: agent.evaluate(obs, agent.sample(batch)[0])):
+        with pytest.raises(ValueError, match=f"privileged critic reads '{ENV_STATE_KEY}'"):
+            needs_value(without_state)
 
 
 def test_privileged_critic_is_refused_where_it_cannot_mean_anything(lowdim_dataset_root):
@@ -123,6 +127,19 @@ def test_privileged_critic_is_refused_where_it_cannot_mean_anything(lowdim_datas
     with pytest.raises(ValueError, match="give critic_hidden_dims"):
         make_bcrl_policy(dataset, critic_observation="privileged")
     with pytest.raises(ValueError, match="for pixels policies"):
+        make_bcrl_policy(dataset, critic_hidden_dims=(32,), critic_observation="privileged")
+
+
+def test_privileged_critic_on_a_pixels_dataset_without_environment_state_is_refused(image_dataset_root):
+    from lerobot_bcrl.features import ENV_STATE_KEY
+
+    dataset = load_dataset(image_dataset_root)
+    features = {key: value for key, value in dataset.meta.features.items() if key != ENV_STATE_KEY}
+    dataset.meta.info.features = features  # a camera dataset recorded without the simulator's object state
+    assert ENV_STATE_KEY not in dataset.meta.features
+    policy, _, _ = make_bcrl_policy(dataset, critic_hidden_dims=(32,))  # its actor needs no environment state
+    assert ENV_STATE_KEY not in policy.config.input_features
+    with pytest.raises(ValueError, match=f"reads '{ENV_STATE_KEY}': the dataset lacks it"):
         make_bcrl_policy(dataset, critic_hidden_dims=(32,), critic_observation="privileged")
 
 

@@ -14,6 +14,7 @@ from functools import partial
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file
 from policy_fixtures import image_dataset_root, lowdim_dataset_root, save_untrained_checkpoint  # noqa: F401
 from test_rl_cli import finetune_args, run_cli
 
@@ -76,7 +77,8 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     args = [arg for arg in finetune_args(data, tmp_path / "bcrl", 128) if not arg.startswith("--rollout.n_workers")]
     output = run_cli("bcrl-finetune", f"--policy.path={bc_checkpoint}", *args, "--env.obs_type=pixels_agent_pos",
                      "--rollout.n_workers=1", "--policy.critic_hidden_dims=[32]",
-                     "--policy.critic_observation=privileged", timeout=300)  # an asymmetric critic
+                     "--policy.critic_observation=privileged",  # an asymmetric critic
+                     "--dataset.video_backend=bcrl_frame_cache", timeout=300)
     assert "128 env steps" in output
     result = json.loads((tmp_path / "bcrl" / "eval_final.json").read_text())
     assert result["env_steps"] == 128 and result["eval_episodes"] == 1 and 0 < result["theta"] < 1
@@ -85,6 +87,9 @@ def test_bc_plus_rl_on_camera_observations_through_the_real_commands(tmp_path):
     assert float(row["rendering_s"]) > 0 and float(row["simulation_s"]) > 0  # the camera's time, apart
     pretrained = tmp_path / "bcrl" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((pretrained / "config.json").read_text())["critic_observation"] == "privileged"
+    weights = load_file(pretrained / "model.safetensors")  # the value from the privileged critic, not the actor's
+    assert any(name.startswith("model.privileged_critic.") for name in weights)
+    assert not any(name.startswith("model.critic.") for name in weights)
     eval_output = run_cli("lerobot-eval", f"--policy.path={pretrained}", "--env.type=bcrl_lift",
                           "--env.obs_type=pixels_agent_pos", "--env.episode_length=6", "--eval.n_episodes=1",
                           "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",

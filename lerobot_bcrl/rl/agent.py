@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from lerobot_bcrl.features import ENV_STATE_KEY
+
 
 class Agent(Protocol):
     module: nn.Module  # the parameters PPO optimises
@@ -106,13 +108,21 @@ class BCRLAgent:
         continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
         raw_actions = torch.cat([continuous_dist.sample(), gripper_dist.sample()[:, None].float()], dim=-1)
         log_prob, _ = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
-        return raw_actions, log_prob, outputs.value
+        return raw_actions, log_prob, self._required_value(outputs.value)
 
     def evaluate(self, obs, raw_actions):
         outputs = self.policy.model(obs)
         continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
         log_prob, entropy = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
-        return log_prob, entropy, outputs.value
+        return log_prob, entropy, self._required_value(outputs.value)
+
+    @staticmethod
+    def _required_value(value: Tensor | None) -> Tensor:
+        """PPO needs the value; only the privileged critic can lack its input (a robot acting needs none)."""
+        if value is None:
+            raise ValueError(f"the policy's privileged critic reads '{ENV_STATE_KEY}', which these observations lack:"
+                             " PPO needs an env that gives it (bcrl_lift does in every obs_type)")
+        return value
 
     @staticmethod
     def _log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions):
@@ -129,4 +139,4 @@ class BCRLAgent:
         return self.policy.select_action(obs)
 
     def value(self, obs):
-        return self.policy.model(obs).value
+        return self._required_value(self.policy.model(obs).value)

@@ -34,7 +34,7 @@ class BCRLConfig(PreTrainedConfig):
     # (): the value is one linear layer on the shared trunk (the paper's network). Hidden widths, e.g.
     # (256, 256): a separate critic MLP on the trunk's inputs (keypoints detached), so that PPO's value loss
     # cannot pull the trunk away from what the BC term taught it. A BC checkpoint without a critic loads with
-    # a freshly initialised one (`bcrl-finetune --policy.path=... --ppo.critic_hidden_dims=[256,256]`).
+    # a freshly initialised one (`bcrl-finetune --policy.path=... --policy.critic_hidden_dims=[256,256]`).
     critic_hidden_dims: tuple[int, ...] = ()
     # What that separate critic reads. "actor": the actor's inputs, as above. "privileged" (pixels policies): its
     # own MLP on observation.environment_state + observation.state, which the simulator gives and a robot does not:
