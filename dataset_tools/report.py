@@ -19,6 +19,7 @@ import draccus
 import numpy as np
 
 from lerobot_bcrl.features import LIFT_REWARD
+from lerobot_bcrl.rl.logger import TIME_COLUMNS
 from lerobot_bcrl.stats import mean_ci95
 
 METHOD_ORDER = ("BC", "BC+RL", "PPO from scratch")
@@ -223,15 +224,6 @@ def markdown_tables(rows: list[dict]) -> tuple[str, list[dict]]:
     return "\n".join(lines) + "\n", cell_list
 
 
-TIME_PARTS = (  # logs.csv columns (seconds per iteration) and what they measure
-    ("collect_s", "collect (wall)"), ("learn_s", "learn (wall)"),
-    ("simulation_s", "simulation (workers' wall time, summed)"), ("rendering_s", "rendering (workers' wall time, summed)"),
-    ("policy_s", "policy and bookkeeping in the workers (wall time, summed)"),
-    ("learner_data_s", "learner: minibatches and demo batches"),
-    ("bc_term_s", "learner: BC forward and gradient-share norms"), ("update_s", "learner: PPO forward/backward, step"),
-)
-
-
 def timing_table(rows: list[dict]) -> str:
     """Where each training run's time went, in seconds per 1,000 env steps (runs whose logs.csv times its parts).
 
@@ -246,15 +238,15 @@ def timing_table(rows: list[dict]) -> str:
             continue
         steps_collected = np.diff(log["env_steps"], prepend=0.0)[timed].sum()
         per_1k = 1000.0 / steps_collected
-        cells = [f"{per_1k * np.nansum(log[key][timed]):.2f}" if key in log else "-" for key, _ in TIME_PARTS]
+        cells = [f"{per_1k * np.nansum(log[key][timed]):.2f}" if key in log else "-" for key in TIME_COLUMNS]
         seed = "-" if r.get("seed") is None else r["seed"]
         lines.append(f"| {r['method']} | {seed} | " + " | ".join(cells) + f" | `{r['run']}` |")
     if not lines:
         return ""
-    header = "| method | seed | " + " | ".join(name for _, name in TIME_PARTS) + " | run |"
+    header = "| method | seed | " + " | ".join(TIME_COLUMNS.values()) + " | run |"
     return "\n".join(["", "Where the time goes (seconds per 1,000 env steps; the workers' parts are wall time in each"
                       " worker, summed over workers; the learner's are wall time within learn)", "", header,
-                      "|---" * (len(TIME_PARTS) + 3) + "|", *lines]) + "\n"
+                      "|---" * (len(TIME_COLUMNS) + 3) + "|", *lines]) + "\n"
 
 
 def read_log(run_dir: Path) -> dict[str, np.ndarray]:

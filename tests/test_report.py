@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from policy_fixtures import lowdim_dataset_root  # noqa: F401
 
-from dataset_tools.report import (TIME_PARTS, ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
+from dataset_tools.report import (ReportConfig, demonstrators, plot_label, report, steps_lost_after_lift, trailing_mean,
                                   wilson_ci95)
 from lerobot_bcrl.features import LIFT_REWARD
-from lerobot_bcrl.rl.logger import LOG_COLUMNS
+from lerobot_bcrl.rl.logger import LOG_COLUMNS, TIME_COLUMNS
 from lerobot_bcrl.rl.rollout import EpisodeStats
 
 
@@ -81,7 +81,7 @@ def write_timed_log(run: Path, env_steps: list[int], timed_from: int) -> dict[st
 def time_cells(tables: str, run: Path) -> dict[str, float]:
     (line,) = [line for line in tables.split("Where the time goes")[1].splitlines() if f"`{run}`" in line]
     cells = [c.strip() for c in line.split("|")[1:-1]]
-    return {"seed": cells[1], **{key: float(cell) for (key, _), cell in zip(TIME_PARTS, cells[2:-1], strict=True)}}
+    return {"seed": cells[1], **{key: float(cell) for key, cell in zip(TIME_COLUMNS, cells[2:-1], strict=True)}}
 
 
 def test_where_the_time_goes_is_per_thousand_env_steps_of_the_timed_iterations(lowdim_dataset_root, tmp_path):

@@ -12,9 +12,16 @@ import numpy as np
 from lerobot_bcrl.rl.rollout import EpisodeStats
 from lerobot_bcrl.stats import mean_ci95
 
+# Seconds per iteration, and what each measures (bcrl-report's "where the time goes" table).
+TIME_COLUMNS = {
+    "collect_s": "collect (wall)", "learn_s": "learn (wall)",
+    "simulation_s": "simulation (workers' wall time, summed)", "rendering_s": "rendering (workers' wall time, summed)",
+    "policy_s": "policy and bookkeeping in the workers (wall time, summed)",
+    "learner_data_s": "learner: minibatches and demo batches",
+    "bc_term_s": "learner: BC forward and gradient-share norms", "update_s": "learner: PPO forward/backward, step",
+}
 LOG_COLUMNS = [
-    "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "collect_s", "learn_s", "worker_restarts",
-    "simulation_s", "rendering_s", "policy_s", "learner_data_s", "bc_term_s", "update_s",  # see report.TIME_PARTS
+    "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "worker_restarts", *TIME_COLUMNS,
     "train_return", "train_success", "train_episodes",
     "loss", "policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "explained_variance",
     "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",
