@@ -41,8 +41,10 @@ def measure(args, video_backend: str) -> dict:
     policy = make_policy(cfg, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
+    # spawned workers, as lerobot-train's: a forked one would inherit the previous backend's decoded state
     loader = torch.utils.data.DataLoader(dataset, batch_size=args.batch_size, shuffle=True, drop_last=True,
-                                         num_workers=args.num_workers)
+                                         num_workers=args.num_workers,
+                                         multiprocessing_context="spawn" if args.num_workers else None)
 
     def train_step(batch):
         loss, _ = policy.forward(batch)
@@ -79,7 +81,8 @@ def measure(args, video_backend: str) -> dict:
         latencies.append(time.perf_counter() - start)
 
     # One sample's cost in this process (what each DataLoader worker pays per sample), after the loader: LeRobot
-    # warns against decoding in the main process before workers start.
+    # warns against decoding in the main process before workers start. The first item, outside the timing, opens
+    # the decoder (and, for the frame cache, decodes the whole file): the figure is the steady state.
     item_indices = torch.randperm(len(dataset))[: args.items].tolist()
     dataset[item_indices[0]]
     start = time.perf_counter()
@@ -97,7 +100,7 @@ def measure(args, video_backend: str) -> dict:
         "pipeline_samples_per_s": samples / pipeline_s,
         "model_step_samples_per_s": samples / model_s,
         "model_busy_fraction": model_s / pipeline_s,  # target >= 0.9
-        "dataset_item_ms": item_ms,
+        "dataset_item_ms": item_ms,  # steady state: the first item's decoding excluded
         "model_step_ms_per_sample": 1000 * model_s / samples,
         "select_action_p50_ms_batch1": 1000 * float(np.median(latencies)),
     }

@@ -19,8 +19,7 @@ import numpy as np
 from dataset_tools.convert.cli import ConvertConfig, convert
 from dataset_tools.make_demo_bags import MakeDemoBagsConfig, make_demo_bags
 from lerobot_bcrl.robot.command import CommandConfig, DeltaActionCommander
-from lerobot_bcrl.robot.kinematics import UrdfKinematics
-from lerobot_bcrl.robot.mujoco_sawyer import GRIP_SITE_IN_RIGHT_HAND_POS_M, GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW
+from lerobot_bcrl.robot.sim_rig import sawyer_kinematics
 
 
 @dataclass
@@ -61,7 +60,7 @@ def bench_convert(cfg: BenchConfig, tmp: Path) -> None:
 def bench_ik_memory(cfg: BenchConfig) -> None:
     rng = np.random.default_rng(0)
     start_qpos = np.array([0.0, -1.18, 0.0, 2.18, 0.0, 0.57, 3.3161])
-    with UrdfKinematics(cfg.urdf, tool_offset_pos_m=GRIP_SITE_IN_RIGHT_HAND_POS_M, tool_offset_quat_xyzw=GRIP_SITE_IN_RIGHT_HAND_QUAT_XYZW) as kin:
+    with sawyer_kinematics(cfg.urdf) as kin:
         commander = DeltaActionCommander(kin, CommandConfig(fps=30))
         action = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, -1.0])
         samples = []

@@ -23,7 +23,7 @@ class VizConfig:
     root: Path | None = None  # default $HF_LEROBOT_HOME/<repo_id>
     episode: int = 0
     save: Path | None = None  # write an .rrd file instead of spawning a viewer
-    video_backend: str | None = None  # "pyav" or "torchcodec"; LeRobot's default when unset
+    video_backend: str | None = None  # "pyav", "torchcodec" or "bcrl_frame_cache"; LeRobot's default when unset
 
 
 def visualize_episode(cfg: VizConfig) -> Path | None:
