@@ -47,7 +47,7 @@ install_system_libs() {
   done
   local need; need=$(missing_debs "${ffmpeg[@]}")
   if [ -n "$need" ]; then
-    apt_install $need || echo "setup: WARNING: FFmpeg libraries not installed; decode videos with --dataset.video_backend=pyav" >&2
+    apt_install $need || echo "setup: WARNING: FFmpeg libraries not installed; torchcodec cannot decode: use --dataset.video_backend=pyav (bcrl_frame_cache falls back to PyAV itself)" >&2
   fi
 }
 
