@@ -64,7 +64,7 @@ class Trajectories:
     dones: np.ndarray  # (T, N) 1.0 where the episode ended with this step
     last_values: np.ndarray  # (N,) V of the observation after the last step
     episodes: list[EpisodeStats] = field(default_factory=list)  # episodes that ended in this rollout
-    # Seconds this rollout spent per part (summed over workers: CPU time, not wall time): "simulation" (env steps and
+    # Seconds this rollout spent per part (each worker's wall time, summed over workers): "simulation" (env steps and
     # resets less rendering), "rendering" (the camera observations), "policy" (the rest: the policy's preprocessing,
     # sampling and values, and the loop's bookkeeping).
     seconds: dict[str, float] = field(default_factory=dict)
