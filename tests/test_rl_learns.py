@@ -100,6 +100,36 @@ def test_ppo_learns_reach_origin_in_a_few_thousand_steps():
     assert schedule_state.optim_step == 20 * 4 * (256 // 64) and schedule_state.ppo_iteration == 20
 
 
+def test_target_kl_stops_an_iteration_before_the_policy_moves_far():
+    """With `target_kl`, an iteration whose minibatch approx-KL passes the target takes no more steps: fewer steps,
+    and the updated policy ends closer to the one that collected the batch than without the stop."""
+    trajectories = make_workers(seed=3).collect(MLPAgent().module.state_dict(), 64)
+    schedule_cfg = ScheduleConfig(type="constant", constant_theta=0.0)
+
+    def update(target_kl):
+        learner = MLPAgent()
+        cfg = PPOConfig(learning_rate=3e-3, minibatch_size=64, update_epochs=4, gamma=0.95, target_kl=target_kl)
+        optimizer = torch.optim.Adam(learner.module.parameters(), lr=cfg.learning_rate)
+        schedule_state = ScheduleState()
+        metrics = ppo_update(learner, optimizer, trajectories, trajectories.rewards, cfg, schedule_cfg, schedule_state)
+        obs = {"obs": torch.as_tensor(trajectories.observations["obs"].reshape(-1, 1), dtype=torch.float32)}
+        actions = torch.as_tensor(trajectories.actions.reshape(-1, 1))
+        with torch.no_grad():
+            log_ratio = learner.evaluate(obs, actions)[0] - torch.as_tensor(trajectories.log_probs.reshape(-1))
+        kl = float(((log_ratio.exp() - 1) - log_ratio).mean())
+        assert metrics["optim_steps_taken"] == schedule_state.optim_step
+        return metrics, kl
+
+    free, free_kl = update(None)
+    stopped, stopped_kl = update(0.005)
+    assert free["optim_steps_taken"] == 4 * (256 // 64) and free["kl_stopped"] == 0.0
+    assert free_kl > 0.01, free_kl  # the learning rate moves the policy past the target without the stop
+    assert 1 <= stopped["optim_steps_taken"] < free["optim_steps_taken"] and stopped["kl_stopped"] == 1.0
+    assert stopped_kl < 0.5 * free_kl, (stopped_kl, free_kl)
+    with pytest.raises(ValueError, match="target_kl must be positive"):
+        PPOConfig(target_kl=0.0)
+
+
 def test_workers_are_reproducible():
     state = MLPAgent().module.state_dict()
     first, second = make_workers(seed=7).collect(state, 30), make_workers(seed=7).collect(state, 30)

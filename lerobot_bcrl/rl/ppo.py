@@ -43,6 +43,9 @@ class PPOConfig:
     minibatch_size: int = 256
     learning_rate: float = 1e-4
     max_grad_norm: float = 0.5
+    # Early stop (Spinning Up's, per minibatch): once a minibatch's approx-KL to the rollout policy exceeds this, the
+    # iteration takes no more steps. None: every epoch runs (CleanRL's default).
+    target_kl: float | None = None
     normalize_advantages: bool = True
     normalize_rewards: bool = True  # divide rewards by a running std of the discounted return (rl/normalization.py)
     # The exploration log-std set before the first update (build.reset_exploration_std), on [delta_pos / scale,
@@ -56,6 +59,8 @@ class PPOConfig:
     def __post_init__(self):
         if self.term_weighting not in TERM_WEIGHTINGS:
             raise ValueError(f"ppo.term_weighting must be one of {TERM_WEIGHTINGS}, got {self.term_weighting!r}")
+        if self.target_kl is not None and self.target_kl <= 0:
+            raise ValueError(f"ppo.target_kl must be positive (or None: no early stop), got {self.target_kl}")
 
 
 # ------------------------------------------------------------------------------------------ PPO's maths
@@ -179,15 +184,17 @@ def select_minibatch(agent: Agent, batch: dict, index: Tensor) -> dict:
 def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Trajectories, rewards: np.ndarray,
                cfg: PPOConfig, schedule_cfg: ScheduleConfig, schedule_state: ScheduleState,
                demo_batches=None, bc_forward=None) -> dict[str, float]:
-    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches; returns mean metrics and the
-    seconds spent reading minibatches (`learner_data_s`), in the BC term's forward pass and gradient-share norms
-    (`bc_term_s`) and in the rest: PPO's forward pass, the joint loss's backward pass and the step (`update_s`)."""
+    """One PPO iteration: GAE, then `update_epochs` passes over shuffled minibatches (fewer where `target_kl` stops
+    them: `optim_steps_taken`, `kl_stopped`); returns mean metrics and the seconds spent reading minibatches
+    (`learner_data_s`), in the BC term's forward pass and gradient-share norms (`bc_term_s`) and in the rest: PPO's
+    forward pass, the joint loss's backward pass and the step (`update_s`)."""
     update_start = time.perf_counter()
     batch = training_batch(trajectories, rewards, cfg)
     batch_size = batch["actions"].shape[0]
     agent.module.train()
     history: dict[str, list[float]] = {}
     data_s = bc_term_s = 0.0
+    steps_taken, kl_stopped = 0, False
     for epoch in range(cfg.update_epochs):
         permutation = torch.randperm(batch_size)
         for start in range(0, batch_size, cfg.minibatch_size):
@@ -199,15 +206,22 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
             loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta, cfg, bc_forward,
                                       measure_gradients=epoch == 0 and start == 0)  # once per iteration
             bc_term_s += metrics.pop("bc_term_s")
+            kl_stopped = cfg.target_kl is not None and metrics["approx_kl"] > cfg.target_kl
+            if kl_stopped:
+                break
             optimizer.zero_grad()
             loss.backward()
             metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(agent.module.parameters(), cfg.max_grad_norm))
             optimizer.step()
             schedule_state.optim_step += 1
+            steps_taken += 1
             for name, value in {**metrics, "theta": theta}.items():
                 history.setdefault(name, []).append(value)
+        if kl_stopped:
+            break
     schedule_state.ppo_iteration += 1
     summary = {name: float(np.mean(values)) for name, values in history.items()}
+    summary.update(optim_steps_taken=steps_taken, kl_stopped=float(kl_stopped))
     summary["explained_variance"] = explained_variance(batch["values"].numpy(), batch["returns"].numpy())
     summary.update(learner_data_s=data_s, bc_term_s=bc_term_s,
                    update_s=time.perf_counter() - update_start - data_s - bc_term_s)
