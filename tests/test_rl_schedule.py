@@ -62,7 +62,7 @@ def test_state_gives_theta_from_its_counters():
     assert state.theta(cfg) == pytest.approx(math.exp(-2))
 
 
-def test_run_label_names_the_method_and_the_floor(tmp_path):
+def test_run_label_names_the_method_the_floor_and_the_kl_stop(tmp_path):
     import json
     from pathlib import Path
 
@@ -75,6 +75,8 @@ def test_run_label_names_the_method_and_the_floor(tmp_path):
     assert cfg.method == "BC+RL"
     cfg.schedule = ScheduleConfig(type="three_phase", alpha=10, beta=5.0, phi=20, theta_min=0.2)
     assert cfg.method == "BC+RL, theta_t >= 0.2"
+    cfg.ppo.target_kl = 0.1
+    assert cfg.method == "BC+RL, theta_t >= 0.2, KL stop 0.1"
     cfg.total_env_steps = 0
     assert cfg.method == "BC"
     # evaluating a checkpoint bcrl-finetune trained for 192k env steps: BC+RL, whatever the schedule flags say

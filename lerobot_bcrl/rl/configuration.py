@@ -121,5 +121,5 @@ class FinetuneConfig:
             return "BC+RL" if self.policy.pretrained_path and policy_env_steps(self.policy.pretrained_path) else "BC"
         if not self.policy.pretrained_path:
             return "PPO from scratch"
-        floor = self.schedule.floor
-        return f"BC+RL, theta_t >= {floor:g}" if floor > 0 else "BC+RL"
+        floor, target_kl = self.schedule.floor, self.ppo.target_kl
+        return "BC+RL" + (f", theta_t >= {floor:g}" if floor > 0 else "") + (f", KL stop {target_kl:g}" if target_kl else "")
