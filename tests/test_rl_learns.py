@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
-from lerobot_bcrl.rl.ppo import PPOConfig, ppo_update
+from lerobot_bcrl.rl.ppo import PPOConfig, ppo_loss_terms, ppo_update
 from lerobot_bcrl.rl.rollout import InlineWorkers
 from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
 
@@ -115,8 +115,9 @@ def test_target_kl_stops_an_iteration_before_the_policy_moves_far():
         obs = {"obs": torch.as_tensor(trajectories.observations["obs"].reshape(-1, 1), dtype=torch.float32)}
         actions = torch.as_tensor(trajectories.actions.reshape(-1, 1))
         with torch.no_grad():
-            log_ratio = learner.evaluate(obs, actions)[0] - torch.as_tensor(trajectories.log_probs.reshape(-1))
-        kl = float(((log_ratio.exp() - 1) - log_ratio).mean())
+            new_log_prob, _, value = learner.evaluate(obs, actions)
+            old_log_prob = torch.as_tensor(trajectories.log_probs.reshape(-1))
+            kl = float(ppo_loss_terms(new_log_prob, old_log_prob, value, value, value, cfg.clip_eps)["approx_kl"])
         assert metrics["optim_steps_taken"] == schedule_state.optim_step
         return metrics, kl
 

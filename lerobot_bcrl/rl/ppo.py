@@ -194,7 +194,7 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
     agent.module.train()
     history: dict[str, list[float]] = {}
     data_s = bc_term_s = 0.0
-    steps_taken, kl_stopped = 0, False
+    first_step, kl_stopped = schedule_state.optim_step, False
     for epoch in range(cfg.update_epochs):
         permutation = torch.randperm(batch_size)
         for start in range(0, batch_size, cfg.minibatch_size):
@@ -214,14 +214,13 @@ def ppo_update(agent: Agent, optimizer: torch.optim.Optimizer, trajectories: Tra
             metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(agent.module.parameters(), cfg.max_grad_norm))
             optimizer.step()
             schedule_state.optim_step += 1
-            steps_taken += 1
             for name, value in {**metrics, "theta": theta}.items():
                 history.setdefault(name, []).append(value)
         if kl_stopped:
             break
     schedule_state.ppo_iteration += 1
     summary = {name: float(np.mean(values)) for name, values in history.items()}
-    summary.update(optim_steps_taken=steps_taken, kl_stopped=float(kl_stopped))
+    summary.update(optim_steps_taken=schedule_state.optim_step - first_step, kl_stopped=float(kl_stopped))
     summary["explained_variance"] = explained_variance(batch["values"].numpy(), batch["returns"].numpy())
     summary.update(learner_data_s=data_s, bc_term_s=bc_term_s,
                    update_s=time.perf_counter() - update_start - data_s - bc_term_s)
