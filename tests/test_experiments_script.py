@@ -45,7 +45,7 @@ def test_experiments_script_runs_the_recipe_by_default(tmp_path):
 
     bcrl = json.loads((out / "bcrl" / "checkpoints" / "last" / "pretrained_model" / FINETUNE_CONFIG_NAME).read_text())
     assert bcrl["select"] == "best_validation" and bcrl["schedule"]["theta_min"] == 0.0
-    assert bcrl["ppo"]["reset_log_std"] == -2.0 and bcrl["ppo"]["term_weighting"] == "gradient_share"
+    assert bcrl["ppo"]["reset_log_std"] == -1.5 and bcrl["ppo"]["term_weighting"] == "gradient_share"
     final = json.loads((out / "bcrl" / "eval_final.json").read_text())
     assert final["env_steps"] == 128 and final["selected_env_steps"] in (0, 64, 128)
     assert json.loads((out / "bc_only" / "eval_final.json").read_text())["method"] == "BC"

@@ -50,7 +50,7 @@ class PPOConfig:
     normalize_rewards: bool = True  # divide rewards by a running std of the discounted return (rl/normalization.py)
     # The exploration log-std set before the first update (build.reset_exploration_std), on [delta_pos / scale,
     # delta_rotvec / scale].
-    reset_log_std: float = -2.0
+    reset_log_std: float = -1.5
     # How theta_t weighs the two terms. "loss": the paper's `theta * L_BC + (1 - theta) * L_PPO`. "gradient_share":
     # L_BC is first rescaled per minibatch by ||grad L_PPO|| / ||grad L_BC|| (policy term, detached), so theta_t is
     # the BC term's share of the policy gradient (PPO's was 2-9x the BC loss's here: docs/RESULTS.md).
