@@ -1,4 +1,4 @@
-"""BC training throughput of the `bcrl` policy on CPU: data pipeline + step vs the model step alone.
+"""BC training throughput of the `bcrl` policy: data pipeline + step vs the model step alone, on CPU or a GPU.
 
 Prints one JSON line per video backend, each with the model step alone on the same batches (the baseline). Example:
 python bench/bc_throughput.py --root=/tmp/dev_img --batch_size=64 --steps=5 --video_backends=torchcodec,bcrl_frame_cache
@@ -22,6 +22,7 @@ def main() -> None:
     parser.add_argument("--latency_calls", type=int, default=50)
     parser.add_argument("--items", type=int, default=300, help="dataset items timed one by one in this process")
     parser.add_argument("--num_workers", type=int, default=1, help="DataLoader workers decoding beside the step")
+    parser.add_argument("--device", default="cpu", help="where the model trains: cpu or cuda")
     parser.add_argument("--video_backends", default="torchcodec,bcrl_frame_cache",
                         help="comma-separated LeRobotDataset video backends to measure, one line each")
     args = parser.parse_args()
@@ -37,13 +38,19 @@ def measure(args, video_backend: str) -> dict:
 
     torch.manual_seed(0)
     dataset = LeRobotDataset("local/bench", root=args.root, video_backend=video_backend)
-    cfg = BCRLConfig(device="cpu", push_to_hub=False)
+    cfg = BCRLConfig(device=args.device, push_to_hub=False)
+
+    def now() -> float:  # a GPU's queued work counted where it is issued
+        if args.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        return time.perf_counter()
+
     policy = make_policy(cfg, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
     # spawned workers, as lerobot-train's: a forked one would inherit the previous backend's decoded state
     loader = torch.utils.data.DataLoader(dataset, batch_size=args.batch_size, shuffle=True, drop_last=True,
-                                         num_workers=args.num_workers,
+                                         num_workers=args.num_workers, pin_memory=args.device.startswith("cuda"),
                                          multiprocessing_context="spawn" if args.num_workers else None)
 
     def train_step(batch):
@@ -55,8 +62,9 @@ def measure(args, video_backend: str) -> dict:
     policy.train()
     batches = []
     iterator = iter(loader)
-    next(iterator)  # start the workers outside the timing
-    start = time.perf_counter()
+    for _ in range(max(1, args.num_workers)):  # every worker started, its first file decoded, outside the timing
+        next(iterator)
+    start = now()
     for _ in range(args.steps):
         try:
             raw = next(iterator)
@@ -66,29 +74,29 @@ def measure(args, video_backend: str) -> dict:
         batch = preprocessor(raw)
         train_step(batch)
         batches.append(batch)
-    pipeline_s = time.perf_counter() - start
+    pipeline_s = now() - start
 
-    start = time.perf_counter()
+    start = now()
     for batch in batches:
         train_step(batch)
-    model_s = time.perf_counter() - start
+    model_s = now() - start
 
     single = {k: v[:1] if isinstance(v, torch.Tensor) else v for k, v in batches[0].items()}
     latencies = []
     for _ in range(args.latency_calls):
-        start = time.perf_counter()
+        start = now()
         policy.select_action(single)
-        latencies.append(time.perf_counter() - start)
+        latencies.append(now() - start)
 
     # One sample's cost in this process (what each DataLoader worker pays per sample), after the loader: LeRobot
     # warns against decoding in the main process before workers start. The first item, outside the timing, opens
     # the decoder (and, for the frame cache, decodes the whole file): the figure is the steady state.
     item_indices = torch.randperm(len(dataset))[: args.items].tolist()
     dataset[item_indices[0]]
-    start = time.perf_counter()
+    start = now()
     for index in item_indices:
         dataset[index]
-    item_ms = 1000 * (time.perf_counter() - start) / len(item_indices)
+    item_ms = 1000 * (now() - start) / len(item_indices)
 
     samples = args.steps * args.batch_size
     return {
@@ -96,6 +104,7 @@ def measure(args, video_backend: str) -> dict:
         "mode": "pixels" if cfg.uses_images else "low_dim",
         "batch_size": args.batch_size,
         "dataloader_workers": args.num_workers,
+        "device": args.device,
         "torch_threads": torch.get_num_threads(),
         "pipeline_samples_per_s": samples / pipeline_s,
         "model_step_samples_per_s": samples / model_s,
