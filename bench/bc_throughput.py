@@ -39,9 +39,10 @@ def measure(args, video_backend: str) -> dict:
     torch.manual_seed(0)
     dataset = LeRobotDataset("local/bench", root=args.root, video_backend=video_backend)
     cfg = BCRLConfig(device=args.device, push_to_hub=False)
+    on_gpu = args.device.startswith("cuda")
 
-    def now() -> float:  # a GPU's queued work counted where it is issued
-        if args.device.startswith("cuda"):
+    def now() -> float:  # CUDA runs asynchronously: wait for the queued work, so that a timer reads finished work
+        if on_gpu:
             torch.cuda.synchronize()
         return time.perf_counter()
 
@@ -50,7 +51,7 @@ def measure(args, video_backend: str) -> dict:
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
     # spawned workers, as lerobot-train's: a forked one would inherit the previous backend's decoded state
     loader = torch.utils.data.DataLoader(dataset, batch_size=args.batch_size, shuffle=True, drop_last=True,
-                                         num_workers=args.num_workers, pin_memory=args.device.startswith("cuda"),
+                                         num_workers=args.num_workers, pin_memory=on_gpu,
                                          multiprocessing_context="spawn" if args.num_workers else None)
 
     def train_step(batch):
@@ -93,10 +94,10 @@ def measure(args, video_backend: str) -> dict:
     # the decoder (and, for the frame cache, decodes the whole file): the figure is the steady state.
     item_indices = torch.randperm(len(dataset))[: args.items].tolist()
     dataset[item_indices[0]]
-    start = now()
+    start = time.perf_counter()
     for index in item_indices:
         dataset[index]
-    item_ms = 1000 * (now() - start) / len(item_indices)
+    item_ms = 1000 * (time.perf_counter() - start) / len(item_indices)
 
     samples = args.steps * args.batch_size
     return {
