@@ -7,6 +7,7 @@ python bench/bc_throughput.py --root=/tmp/dev_img --batch_size=64 --steps=5 --vi
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -31,6 +32,7 @@ def main() -> None:
 
 
 def measure(args, video_backend: str) -> dict:
+    from lerobot.configs.train import TrainPipelineConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
@@ -49,10 +51,17 @@ def measure(args, video_backend: str) -> dict:
     policy = make_policy(cfg, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
     optimizer = cfg.get_optimizer_preset().build(policy.get_optim_params())
-    # spawned workers, as lerobot-train's: a forked one would inherit the previous backend's decoded state
+    # The loader lerobot-train builds: its default worker options (spawned workers, which also keep one backend's
+    # decoded state from the next; persistent across epochs: a small dataset would otherwise restart its workers,
+    # each decoding its files again, every few batches; its prefetch depth), pinned batches on a GPU.
+    train_defaults = {f.name: f.default for f in dataclasses.fields(TrainPipelineConfig)}
+    workers = {} if args.num_workers == 0 else {
+        "multiprocessing_context": train_defaults["dataloader_multiprocessing_context"],
+        "persistent_workers": train_defaults["persistent_workers"],
+        "prefetch_factor": train_defaults["prefetch_factor"],
+    }
     loader = torch.utils.data.DataLoader(dataset, batch_size=args.batch_size, shuffle=True, drop_last=True,
-                                         num_workers=args.num_workers, pin_memory=on_gpu,
-                                         multiprocessing_context="spawn" if args.num_workers else None)
+                                         num_workers=args.num_workers, pin_memory=on_gpu, **workers)
 
     def train_step(batch):
         loss, _ = policy.forward(batch)
