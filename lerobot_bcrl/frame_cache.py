@@ -4,18 +4,19 @@ LeRobotDataset decodes every sample's frame from its MP4 (seek to the key frame,
 128x128 camera that costs about as much as the `bcrl` model's whole training step on a CPU, so the model waits on the
 data ([RESULTS](../docs/RESULTS.md#bc-training-throughput)). This backend decodes a whole video file the first time a
 process asks for one of its frames (torchcodec, in order, no seeking; PyAV where torchcodec cannot load, e.g. without
-FFmpeg's shared libraries), keeps the frames as uint8 (49 KB a 128x128
-frame: about 1 GB per 20,000 frames, in each DataLoader worker that reads them) and answers each query by the nearest
-frame, within LeRobot's timestamp tolerance as its own decoders check it. `clear()` lets the decoded videos go once
-their frames are copied elsewhere (bcrl-finetune's demo buffer).
+FFmpeg's shared libraries), keeps the frames as contiguous uint8 (49 KB a 128x128 frame: about 1 GB per 20,000
+frames, in each DataLoader worker that reads them) and answers each query by the nearest frame, within LeRobot's
+timestamp tolerance as its own decoders check it. It also keeps, per episode and camera, the video file and the
+episode's start in it, which LeRobot reads from the episode metadata twice for every sample. `clear()` lets the
+decoded videos go once their frames are copied elsewhere (bcrl-finetune's demo buffer).
 
-LeRobot picks its decoder by name inside `lerobot.datasets.dataset_reader`; `install()` wraps that function so that
-this name is understood and every other name goes to LeRobot's decoder unchanged (one LeRobot version, checked like
-`policies/bcrl/aux_targets.py`). Importing `lerobot_bcrl` (as lerobot-train's plugin loading does) installs it.
-lerobot-train's DataLoader workers are spawned, fresh interpreters that unpickle the dataset without loading plugins:
-so a dataset, and a reader, built with this backend hold its name as a `FrameCacheBackend`, a `str` whose unpickling
-imports this module, which installs the decoder in the worker before its first frame (also when the worker builds the
-reader itself).
+LeRobot picks its decoder by name inside `lerobot.datasets.dataset_reader`; `install()` wraps that function, and the
+reader's per-sample video query, so that this name is understood and every other name goes to LeRobot's code
+unchanged (one LeRobot version, checked like `policies/bcrl/aux_targets.py`). Importing `lerobot_bcrl` (as
+lerobot-train's plugin loading does) installs it. lerobot-train's DataLoader workers are spawned, fresh interpreters
+that unpickle the dataset without loading plugins: so a dataset, and a reader, built with this backend hold its name
+as a `FrameCacheBackend`, a `str` whose unpickling imports this module, which installs the decoder in the worker
+before its first frame (also when the worker builds the reader itself).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+import numpy as np
 import torch
 from lerobot.datasets import dataset_reader, lerobot_dataset
 from lerobot.datasets.video_utils import FrameTimestampError
@@ -48,7 +50,8 @@ def _decoded(video_path: str, mtime_ns: int) -> tuple[Tensor, Tensor]:
     except (ImportError, OSError, RuntimeError):
         return _decoded_with_pyav(video_path)
     batch = decoder.get_frames_in_range(0, len(decoder))
-    return batch.data, batch.pts_seconds.double()
+    # torchcodec's frames are a channels-last view: one frame copies several times faster from contiguous memory
+    return batch.data.contiguous(), batch.pts_seconds.double()
 
 
 def _decoded_with_pyav(video_path: str) -> tuple[Tensor, Tensor]:
@@ -78,18 +81,28 @@ def decode_cached(video_path: Path | str, timestamps: list[float], tolerance_s: 
     """The frames nearest to `timestamps` (seconds in the file), float in [0, 1] (or uint8), like LeRobot's decoders."""
     path = Path(video_path)
     frames, pts = _decoded(str(path), path.stat().st_mtime_ns)
-    query = torch.tensor(timestamps, dtype=torch.float64)
-    after = torch.searchsorted(pts, query).clamp(1, len(pts) - 1)
-    nearer_before = (query - pts[after - 1]).abs() <= (pts[after] - query).abs()
-    index = torch.where(nearer_before, after - 1, after)
-    distance = (pts[index] - query).abs()
+    pts_s = pts.numpy()  # numpy for the index arithmetic: on one or a few timestamps torch's per-call cost dominates
+    query = np.asarray(timestamps, dtype=np.float64)
+    after = np.searchsorted(pts_s, query).clip(1, len(pts_s) - 1)
+    nearer_before = np.abs(query - pts_s[after - 1]) <= np.abs(pts_s[after] - query)
+    index = np.where(nearer_before, after - 1, after)
+    distance = np.abs(pts_s[index] - query)
     if (distance >= tolerance_s).any():
         worst = int(distance.argmax())
         raise FrameTimestampError(
-            f"{path}: no frame within {tolerance_s} s of {timestamps[worst]:.6f} s (nearest at {float(pts[index[worst]]):.6f} s)"
+            f"{path}: no frame within {tolerance_s} s of {timestamps[worst]:.6f} s (nearest at {pts_s[index[worst]]:.6f} s)"
         )
-    selected = frames[index]
-    return selected if return_uint8 else selected.float() / 255.0
+    selected = frames.index_select(0, torch.from_numpy(index))  # (an index tensor in [] copies ~30x slower here)
+    return selected if return_uint8 else selected.float().div_(255.0)
+
+
+def _episode_video(reader, ep_idx: int, vid_key: str) -> tuple[Path, float] | None:
+    """Where an episode's frames of one camera are: its video file and its start in that file (seconds); None for a
+    depth camera (left to LeRobot)."""
+    if vid_key in reader._meta.depth_keys:
+        return None
+    from_timestamp_s = float(reader._meta.episodes[ep_idx][f"videos/{vid_key}/from_timestamp"])
+    return reader.root / reader._meta.get_video_file_path(ep_idx, vid_key), from_timestamp_s
 
 
 def install() -> None:
@@ -119,8 +132,30 @@ def install() -> None:
             return decode_cached(video_path, timestamps, tolerance_s, return_uint8=return_uint8)
         return lerobot_decode(video_path, timestamps, tolerance_s, backend, return_uint8=return_uint8, is_depth=is_depth)
 
+    lerobot_query_videos = dataset_reader.DatasetReader._query_videos
+
+    @functools.wraps(lerobot_query_videos)
+    def query_videos(self, query_timestamps, ep_idx):
+        # LeRobot reads the episode's metadata row twice per item (its start in the file, the file's path): with
+        # decoding gone that was the item's largest cost, so this backend keeps both per episode and camera.
+        if self._video_backend != BACKEND:
+            return lerobot_query_videos(self, query_timestamps, ep_idx)
+        videos = self.__dict__.setdefault("bcrl_episode_videos", {})
+        frames = {}
+        for vid_key, query_ts in query_timestamps.items():
+            if (ep_idx, vid_key) not in videos:
+                videos[ep_idx, vid_key] = _episode_video(self, ep_idx, vid_key)
+            video = videos[ep_idx, vid_key]
+            if video is None:  # a depth video: LeRobot's decoder and dequantisation
+                return lerobot_query_videos(self, query_timestamps, ep_idx)
+            video_path, from_timestamp_s = video
+            shifted_ts = [from_timestamp_s + ts for ts in query_ts]
+            frames[vid_key] = decode_cached(video_path, shifted_ts, self._tolerance_s, self._return_uint8).squeeze(0)
+        return frames
+
     decode_video_frames.bcrl_frame_cache = True
     dataset_reader.decode_video_frames = decode_video_frames
+    dataset_reader.DatasetReader._query_videos = query_videos
     dataset_reader.DatasetReader.__init__ = init_reader
     lerobot_dataset.LeRobotDataset.__init__ = init_dataset
 

@@ -78,3 +78,18 @@ def test_a_timestamp_off_the_frame_grid_names_the_file(video_dataset_root):
     assert frame_cache.decode_cached(video, [0.0, 2 * half_frame_s], 1e-4, return_uint8=True).dtype == torch.uint8
     with pytest.raises(FrameTimestampError, match=video.name):
         frame_cache.decode_cached(video, [half_frame_s], 1e-4)
+
+
+def test_episode_metadata_is_read_once_per_episode_and_camera(video_dataset_root, monkeypatch):
+    # LeRobot reads an episode's metadata row for every item; the cache keeps where each episode's frames are
+    cached = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend=frame_cache.BACKEND)
+    reference = [cached[i][IMAGE_KEY] for i in range(len(cached))]
+    cached = LeRobotDataset("local/two_episodes", root=video_dataset_root, video_backend=frame_cache.BACKEND)
+    lookups = []
+    lookup = type(cached.meta).get_video_file_path
+    monkeypatch.setattr(type(cached.meta), "get_video_file_path",
+                        lambda meta, ep_index, vid_key: lookups.append(ep_index) or lookup(meta, ep_index, vid_key))
+    for _ in range(2):
+        frames = [cached[i][IMAGE_KEY] for i in range(len(cached))]
+    assert sorted(lookups) == [0, 1]
+    assert all(torch.equal(frame, expected) for frame, expected in zip(frames, reference, strict=True))

@@ -25,7 +25,8 @@ def require_lerobot_version() -> None:
         raise RuntimeError(
             f"lerobot_bcrl needs lerobot=={LEROBOT_VERSION} (found {lerobot.__version__}): it extends two private parts"
             " of LeRobot, lerobot.processor.converters._COMPLEMENTARY_KEYS (the bcrl policy's aux.* targets) and"
-            " lerobot.datasets.dataset_reader.decode_video_frames (the bcrl_frame_cache video backend), which other"
+            " lerobot.datasets.dataset_reader's decode_video_frames and DatasetReader._query_videos (the"
+            " bcrl_frame_cache video backend), which other"
             f" versions may not have. Install lerobot=={LEROBOT_VERSION}."
         )
 
