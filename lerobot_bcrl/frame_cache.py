@@ -136,8 +136,8 @@ def install() -> None:
 
     @functools.wraps(lerobot_query_videos)
     def query_videos(self, query_timestamps, ep_idx):
-        # LeRobot reads the episode's metadata row twice per item (its start in the file, the file's path): with
-        # decoding gone that was the item's largest cost, so this backend keeps both per episode and camera.
+        # LeRobot reads the episode's metadata row twice per item (its start in the file, the file's path), the
+        # largest part of an item's cost once decoding is gone: this backend keeps both per episode and camera.
         if self._video_backend != BACKEND:
             return lerobot_query_videos(self, query_timestamps, ep_idx)
         videos = self.__dict__.setdefault("bcrl_episode_videos", {})
