@@ -128,6 +128,8 @@ def install() -> None:
 
     @functools.wraps(lerobot_decode)
     def decode_video_frames(video_path, timestamps, tolerance_s, backend=None, return_uint8=False, is_depth=False):
+        # reached through LeRobot's own query (below) when an episode has a depth camera: its RGB cameras come from
+        # the cache, its depth goes to LeRobot, which decodes depth with PyAV whatever the backend's name
         if backend == BACKEND and not is_depth:
             return decode_cached(video_path, timestamps, tolerance_s, return_uint8=return_uint8)
         return lerobot_decode(video_path, timestamps, tolerance_s, backend, return_uint8=return_uint8, is_depth=is_depth)
