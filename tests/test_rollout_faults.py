@@ -298,26 +298,27 @@ def test_bcrl_finetune_goes_on_after_a_worker_is_killed(lowdim_dataset_root, unf
 
 @pytest.mark.slow
 def test_bcrl_finetune_goes_on_after_a_ray_node_is_lost(lowdim_dataset_root, unfaulted_run, tmp_path):
-    """A Ray cluster of two nodes on loopback (`ray start --head` of 2 CPUs, `ray start --address=...` of 1) that
-    bcrl-finetune joins with --rollout.ray_address, all of it listening on loopback only: its two actors spread one
-    per node. The second node is lost
-    (its raylet, its actor and every other process of it SIGKILLed at once): Ray restarts the actor on the head,
-    the run re-seeds it where it stood and finishes with the unfaulted run's weights and final evaluation."""
+    """A Ray cluster of three nodes of 1 CPU each on loopback (`ray start --head`, then `ray start --address=...`
+    twice) that bcrl-finetune joins with --rollout.ray_address, all of it listening on loopback only. Its two actors
+    of 1 CPU each cannot share a node, so at least one runs off the head, whenever each node's resources reach the
+    scheduler. That node is lost (its raylet, its actor and every other process of it SIGKILLed at once): Ray
+    restarts the actor on the node left free, the run re-seeds it where it stood and finishes with the unfaulted
+    run's weights and final evaluation."""
     pytest.importorskip("ray")
     from lerobot_bcrl.rl.loopback_cluster import LoopbackCluster
 
-    with LoopbackCluster([2, 1]) as cluster:
+    with LoopbackCluster([1, 1, 1]) as cluster:
         args = [*finetune_args(lowdim_dataset_root, tmp_path, "ray"), f"--rollout.ray_address={cluster.address}"]
 
-        def lose_the_second_node(run):
+        def lose_a_node_with_a_worker(run):
             cluster_pids = [pid for node in cluster.nodes for pid in [node.pid, *_descendants(node.pid)]]
             listening = listening_addresses([*cluster_pids, run.pid, *_descendants(run.pid)])
             assert listening and listening <= LOOPBACK, f"Ray listens off loopback: {listening}"
-            on_the_node = rollout_worker_pids(cluster.nodes[1].pid, "ray")
-            assert len(on_the_node) == 1, "SPREAD puts one of the two actors on each node"
-            cluster.lose_node(1)
+            workers_per_node = [len(rollout_worker_pids(node.pid, "ray")) for node in cluster.nodes]
+            assert workers_per_node in ([1, 1, 0], [1, 0, 1], [0, 1, 1]), workers_per_node
+            cluster.lose_node(1 if workers_per_node[1] else 2)
 
-        output = run_with_a_fault(args, tmp_path, lose_the_second_node)
+        output = run_with_a_fault(args, tmp_path, lose_a_node_with_a_worker)
     warning = assert_replaced_once_and_unchanged(output, tmp_path, unfaulted_run)
     assert "died" in warning, warning
 

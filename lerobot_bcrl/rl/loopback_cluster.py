@@ -38,7 +38,7 @@ NODE_ENV = {
 
 
 class LoopbackCluster:
-    """`with LoopbackCluster([2, 1]) as cluster:` a head of 2 CPUs and a node of 1 at `cluster.address`
+    """`with LoopbackCluster([1, 1, 1]) as cluster:` a head and two nodes of 1 CPU each at `cluster.address`
     (127.0.0.1:6390); `cluster.lose_node(1)` kills node 1 and every process it started at once (SIGKILL), as a
     machine that vanishes. A driver joins it with `RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0` (`RayWorkers` sets it for a
     127.0.0.1 address), else Ray looks for the cluster at the machine's address."""
