@@ -65,15 +65,16 @@ if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import sys; assert sys.ve
 fi
 stamp=.venv/.installed-$(cat pyproject.toml | sha1sum | cut -c1-12)
 if [ ! -f "$stamp" ]; then
-  # The environment takes ~8 GB (PyPI's torch brings its CUDA libraries even on a CPU machine). pip's cache
-  # would hold a second copy of those wheels, so it is off: the install's peak stays near its final size.
-  free_gb=$(df -Pk .venv | awk 'NR==2 {print int($4 / 1048576)}')
-  if [ "${free_gb:-0}" -lt 9 ]; then
-    echo "setup: WARNING: ${free_gb} GB free under $(pwd); installing .venv needs about 9 GB" >&2
+  # The environment takes ~8 GB (PyPI's torch brings its CUDA libraries even on a CPU machine), and pip holds the
+  # downloaded wheels (~3.5 GB) until it has installed them all. pip's cache would keep another copy of them, so it
+  # is off (pybullet, which has no wheel for Python 3.12, is then built again on each fresh install).
+  free_gb=$(df -Pk . | awk 'NR==2 {print int($4 / 1048576)}')
+  if [ "${free_gb:-0}" -lt 12 ]; then
+    echo "setup: WARNING: ${free_gb} GB free under $(pwd); installing .venv needs about 12 GB (8 GB once done)" >&2
   fi
   .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
   .venv/bin/python -m pip install -q --no-cache-dir -e '.[test,ray]' || {
-    echo "setup: pip install failed; if it says 'No space left on device', free about 9 GB under $(pwd) and run again" >&2
+    echo "setup: pip install failed; if it says 'No space left on device', free about 12 GB under $(pwd) and run again" >&2
     exit 1
   }
   rm -f .venv/.installed-*; touch "$stamp"
