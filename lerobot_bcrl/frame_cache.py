@@ -143,17 +143,20 @@ def install() -> None:
         if self._video_backend != BACKEND:
             return lerobot_query_videos(self, query_timestamps, ep_idx)
         videos = self.__dict__.setdefault("bcrl_episode_videos", {})
-        frames = {}
-        for vid_key, query_ts in query_timestamps.items():
+        located = {}
+        for vid_key in query_timestamps:
             if (ep_idx, vid_key) not in videos:
                 videos[ep_idx, vid_key] = _episode_video(self, ep_idx, vid_key)
-            video = videos[ep_idx, vid_key]
-            if video is None:  # a depth video: LeRobot's decoder and dequantisation
-                return lerobot_query_videos(self, query_timestamps, ep_idx)
-            video_path, from_timestamp_s = video
-            shifted_ts = [from_timestamp_s + ts for ts in query_ts]
-            frames[vid_key] = decode_cached(video_path, shifted_ts, self._tolerance_s, self._return_uint8).squeeze(0)
-        return frames
+            located[vid_key] = videos[ep_idx, vid_key]
+        if None in located.values():
+            # a depth camera: LeRobot's own query, for its decoder and dequantisation; that query's calls for the
+            # episode's RGB cameras reach the cache through `decode_video_frames` above
+            return lerobot_query_videos(self, query_timestamps, ep_idx)
+        return {
+            vid_key: decode_cached(video_path, [from_timestamp_s + ts for ts in query_timestamps[vid_key]],
+                                   self._tolerance_s, self._return_uint8).squeeze(0)
+            for vid_key, (video_path, from_timestamp_s) in located.items()
+        }
 
     decode_video_frames.bcrl_frame_cache = True
     dataset_reader.decode_video_frames = decode_video_frames

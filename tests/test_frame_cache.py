@@ -93,3 +93,46 @@ def test_episode_metadata_is_read_once_per_episode_and_camera(video_dataset_root
         frames = [cached[i][IMAGE_KEY] for i in range(len(cached))]
     assert sorted(lookups) == [0, 1]
     assert all(torch.equal(frame, expected) for frame, expected in zip(frames, reference, strict=True))
+
+
+@pytest.fixture(scope="module")
+def rgb_and_depth_dataset_root(tmp_path_factory):
+    # a camera and a depth camera (LeRobot's own depth encoding: 12-bit codes of millimetres); depth 300 + 100 t mm
+    import numpy as np
+
+    root = tmp_path_factory.mktemp("depth") / "rgb_and_depth"
+    features = {
+        "observation.images.rgb": {"dtype": "video", "shape": (64, 64, 3), "names": ["height", "width", "channels"]},
+        "observation.images.depth": {"dtype": "video", "shape": (64, 64, 1), "names": ["height", "width", "channels"],
+                                     "info": {"is_depth_map": True}},
+        "action": {"dtype": "float32", "shape": (2,), "names": None},
+    }
+    dataset = LeRobotDataset.create("local/rgb_and_depth", fps=10, root=root, features=features, use_videos=True)
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        for t in range(6):
+            dataset.add_frame({"observation.images.rgb": rng.integers(0, 256, (64, 64, 3), dtype=np.uint8),
+                               "observation.images.depth": np.full((64, 64, 1), 300 + 100 * t, dtype=np.uint16),
+                               "action": np.zeros(2, dtype=np.float32), "task": "lift"})
+        dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+def test_an_episode_with_a_depth_camera_decodes_each_rgb_frame_once(rgb_and_depth_dataset_root, monkeypatch):
+    # the depth camera goes to LeRobot's decoder; the RGB camera is served by the cache, once per item
+    reference = LeRobotDataset("local/rgb_and_depth", root=rgb_and_depth_dataset_root, video_backend="pyav")
+    cached = LeRobotDataset("local/rgb_and_depth", root=rgb_and_depth_dataset_root, video_backend=frame_cache.BACKEND)
+    assert cached.meta.depth_keys == ["observation.images.depth"]
+    decoded_paths = []
+    decode = frame_cache.decode_cached
+    monkeypatch.setattr(frame_cache, "decode_cached",
+                        lambda path, *args, **kwargs: decoded_paths.append(str(path)) or decode(path, *args, **kwargs))
+    for index in range(len(cached)):
+        item, expected = cached[index], reference[index]
+        for key in ("observation.images.rgb", "observation.images.depth"):
+            assert torch.equal(item[key], expected[key]), f"{key} of frame {index} differs"
+    assert len(decoded_paths) == len(cached) and all("observation.images.rgb" in path for path in decoded_paths)
+    # the depth frames are the recorded millimetres (LeRobot's 12-bit codes round them), so they could differ
+    depth_mm = [float(cached[index]["observation.images.depth"].mean()) for index in (0, 5)]
+    assert depth_mm[0] == pytest.approx(300, rel=0.05) and depth_mm[1] == pytest.approx(800, rel=0.05)
