@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -98,8 +99,6 @@ def test_episode_metadata_is_read_once_per_episode_and_camera(video_dataset_root
 @pytest.fixture(scope="module")
 def rgb_and_depth_dataset_root(tmp_path_factory):
     # a camera and a depth camera (LeRobot's own depth encoding: 12-bit codes of millimetres); depth 300 + 100 t mm
-    import numpy as np
-
     root = tmp_path_factory.mktemp("depth") / "rgb_and_depth"
     features = {
         "observation.images.rgb": {"dtype": "video", "shape": (64, 64, 3), "names": ["height", "width", "channels"]},
