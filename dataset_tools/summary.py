@@ -57,12 +57,17 @@ def summarize(root: Path) -> dict:
             ],
         )
     if "planned_miss" in episodes and episodes["planned_miss"].any():
-        misses = episodes[episodes["planned_miss"].astype(bool)]
+        planned_miss = episodes["planned_miss"].astype(bool)
+        misses = episodes[planned_miss]
         summary.update(
             planned_miss_episodes=len(misses),
             planned_miss_success_rate=float(misses["success"].mean()),
             frames_not_imitated=int(episodes["n_frames_not_imitated"].sum()),
         )
+        if "episode_return" in episodes:  # the demonstrators' own return: docs/RESULTS.md's figure for these sets
+            first_try_mean, first_try_ci = mean_ci95(episodes.loc[~planned_miss, "episode_return"])
+            summary.update(first_try_episodes=int((~planned_miss).sum()), first_try_mean_return=first_try_mean,
+                           first_try_return_ci95=first_try_ci)
     meta = read_bcrl_meta(root)
     if meta:
         summary["made_by"] = meta.get("command")
@@ -92,6 +97,9 @@ def print_summary(summary: dict, root: Path | None = None) -> None:
             f"  planned misses: {summary['planned_miss_episodes']} episodes (then retried:"
             f" {summary['planned_miss_success_rate']:.0%} lifted), {summary['frames_not_imitated']} frames not imitated"
         )
+        if summary.get("first_try_episodes"):
+            print(f"  without a planned miss: {summary['first_try_episodes']} episodes, return"
+                  f" {summary['first_try_mean_return']:.1f} +/- {summary['first_try_return_ci95']:.1f} (95% CI)")
     if summary.get("made_by"):
         print(f"  made by: {summary['made_by']}")
 

@@ -309,6 +309,28 @@ def test_bcrl_record_cli_and_summary(tmp_path):
     assert summary["episodes"] == 2 and summary["frames"] == 40 and 0.0 <= summary["success_rate"] <= 1.0
 
 
+def test_summary_gives_the_return_of_the_episodes_without_a_planned_miss(tmp_path, capsys):
+    """The recipe's sets are scored against the episodes the expert did not miss on purpose: the summary gives them."""
+    import pandas as pd
+
+    from dataset_tools.summary import print_summary, summarize
+
+    returns, missed = [300.0, 340.0, 320.0, 350.0], [True, False, True, False]
+    (tmp_path / "meta" / "episodes" / "chunk-000").mkdir(parents=True)
+    (tmp_path / "meta" / "info.json").write_text(json.dumps(
+        {"codebase_version": "v3.0", "fps": 20, "total_episodes": 4, "total_frames": 800, "features": {}}))
+    pd.DataFrame({"episode_index": range(4), "episode_return": returns, "success": [True] * 4,
+                  "steps_to_lift": [67, 49, 58, 45], "demonstrator_id": [0] * 4, "noise_std": [0.01] * 4,
+                  "planned_miss": missed, "n_frames_not_imitated": [30, 0, 25, 0]}
+                 ).to_parquet(tmp_path / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+    summary = summarize(tmp_path)
+    assert summary["mean_return"] == pytest.approx(327.5)  # every episode
+    assert summary["first_try_episodes"] == 2 and summary["first_try_mean_return"] == pytest.approx(345.0)
+    assert summary["first_try_return_ci95"] == pytest.approx(1.96 * np.std([340.0, 350.0], ddof=1) / np.sqrt(2))
+    print_summary(summary)
+    assert "without a planned miss: 2 episodes, return 345.0" in capsys.readouterr().out
+
+
 def test_any_lerobot_policy_checkpoint_can_be_the_expert(lowdim_dataset_root, tmp_path):
     """`--expert=<pretrained_model>`: a policy's 8-D actions, in controller units, plus the demonstrator's noise."""
     from policy_fixtures import save_untrained_checkpoint
