@@ -200,3 +200,39 @@ def test_async_vector_env_in_forkserver_workers():
     obs, reward, terminated, truncated, info = vec.step(np.tile(NO_OP, (2, 1)))
     assert obs["agent_pos"].shape == (2, STATE_DIM) and reward.shape == (2,)
     vec.close()
+
+
+def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
+    """scripts/failure_modes.py's episode description, with actions we choose: the arm holds still, the gripper
+    closes twice; the nearest approach is the start's end-effector-to-cube distance, computed here from the poses."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "failure_modes", Path(__file__).resolve().parents[1] / "scripts" / "failure_modes.py")
+    failure_modes = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(failure_modes)
+
+    gripper = [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, -1.0, -1.0]  # > 0 closes: two closings
+
+    class StillArm:
+        def reset(self):
+            self.t = 0
+
+        def delta_action(self, obs):
+            action = NO_OP.copy()
+            action[-1] = gripper[self.t]
+            self.t += 1
+            return action
+
+    env = LiftEnv(obs_type="agent_pos", horizon=len(gripper))
+    try:
+        obs, _ = env.reset(seed=failure_modes.SEED_OFFSET)
+        start_distance_cm = 100 * np.linalg.norm(obs["environment_state"][:3] - obs["agent_pos"][:3])
+        episode = failure_modes.describe_episode(StillArm(), env, failure_modes.SEED_OFFSET)
+    finally:
+        env.close()
+    assert episode["lifted"] is False and episode["closings"] == 2
+    assert episode["nearest_cm"] == pytest.approx(start_distance_cm, rel=0.05)
+    assert episode["final_distance_cm"] == pytest.approx(start_distance_cm, rel=0.05)
+    assert episode["cube_rose_cm"] < 0.2 and episode["cube_slid_cm"] < 0.2
