@@ -54,6 +54,7 @@ STATE_GRIPPER_QPOS = slice(7, 9)
 # Slices of observation.environment_state
 ENV_STATE_CUBE_POS = slice(0, 3)
 ENV_STATE_CUBE_QUAT = slice(3, 7)
+ENV_STATE_EEF_TO_CUBE = slice(7, 10)  # cube position minus end-effector position (m)
 
 
 def dataset_features(image_size: int | None, use_videos: bool) -> dict[str, dict]:

@@ -4,7 +4,7 @@ The seeds start at 3,000,000, apart from the demonstrations', validation's (2,00
 so that looking at failures chooses nothing. Prints one JSON line per failed episode (its seed; how often the policy
 commanded the gripper closed; the end effector's nearest approach to the cube's centre; how far the cube slid and
 rose; the distance between them at the end) and a last line with the count. Deterministic actions, as in evaluation.
-    MUJOCO_GL=egl .venv/bin/python scripts/failure_modes.py --policy <run>/checkpoints/best/pretrained_model --episodes 40
+    .venv/bin/python scripts/failure_modes.py --policy=<run>/checkpoints/best/pretrained_model --episodes=40
 """
 
 import argparse
@@ -13,33 +13,33 @@ import json
 import numpy as np
 
 from lerobot_bcrl.envs.lift import LiftEnv
+from lerobot_bcrl.features import ENV_STATE_CUBE_POS, ENV_STATE_EEF_TO_CUBE
+from lerobot_bcrl.geometry import GRIPPER_CLOSED, gripper_class
 from lerobot_bcrl.policy_runner import PolicyRunner
 
-CUBE_POS = slice(0, 3)  # observation.environment_state: cube position (m), then its quaternion,
-CUBE_FROM_EEF = slice(7, 10)  # the cube's position relative to the end effector (m), then yaw features
 SEED_OFFSET = 3_000_000
 
 
 def describe_episode(runner: PolicyRunner, env: LiftEnv, seed: int) -> dict:
     obs, _ = env.reset(seed=seed)
     runner.reset()
-    cube_start = obs["environment_state"][CUBE_POS].copy()
+    cube_start = obs["environment_state"][ENV_STATE_CUBE_POS].copy()
     closings, was_closed, nearest_m, rise_m, lifted = 0, False, np.inf, 0.0, False
     for _ in range(env.horizon):
         action = runner.delta_action(obs)
-        closed = bool(action[-1] > 0)  # the gripper command: > 0 closes
+        closed = gripper_class(action[-1]) == GRIPPER_CLOSED
         closings += int(closed and not was_closed)
         was_closed = closed
         obs, _, _, _, info = env.step(action)
         state = obs["environment_state"]
-        nearest_m = min(nearest_m, float(np.linalg.norm(state[CUBE_FROM_EEF])))
-        rise_m = max(rise_m, float(state[2] - cube_start[2]))
+        cube, eef_to_cube = state[ENV_STATE_CUBE_POS], state[ENV_STATE_EEF_TO_CUBE]
+        nearest_m = min(nearest_m, float(np.linalg.norm(eef_to_cube)))
+        rise_m = max(rise_m, float(cube[2] - cube_start[2]))
         lifted |= info["is_success"]
-    state = obs["environment_state"]
     return {"seed": seed, "lifted": lifted, "closings": closings, "nearest_cm": round(100 * nearest_m, 1),
-            "cube_slid_cm": round(100 * float(np.linalg.norm(state[:2] - cube_start[:2])), 1),
+            "cube_slid_cm": round(100 * float(np.linalg.norm(cube[:2] - cube_start[:2])), 1),
             "cube_rose_cm": round(100 * rise_m, 1),
-            "final_distance_cm": round(100 * float(np.linalg.norm(state[CUBE_FROM_EEF])), 1)}
+            "final_distance_cm": round(100 * float(np.linalg.norm(eef_to_cube)), 1)}
 
 
 def main() -> None:

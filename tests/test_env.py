@@ -7,7 +7,8 @@ from gymnasium.utils.env_checker import check_env
 
 from dataset_tools.experts import ScriptedLiftExpert
 from lerobot_bcrl.envs.lift import LiftEnv
-from lerobot_bcrl.features import CAMERA_NAME, ENV_STATE_DIM, LIFT_REWARD, STATE_DIM
+from lerobot_bcrl.features import (CAMERA_NAME, ENV_STATE_CUBE_POS, ENV_STATE_DIM, ENV_STATE_EEF_TO_CUBE, LIFT_REWARD,
+                                    STATE_DIM, STATE_EEF_POS)
 
 NO_OP = np.array([0, 0, 0, 0, 0, 0, 1.0, -1.0])
 
@@ -48,7 +49,7 @@ def test_observation_layout(lowdim_env):
     eef_pos, eef_quat = obs["agent_pos"][:3], obs["agent_pos"][3:7]
     cube_pos = obs["environment_state"][:3]
     assert abs(np.linalg.norm(eef_quat) - 1) < 1e-4
-    np.testing.assert_allclose(obs["environment_state"][7:10], cube_pos - eef_pos, atol=1e-6)
+    np.testing.assert_allclose(obs["environment_state"][ENV_STATE_EEF_TO_CUBE], cube_pos - eef_pos, atol=1e-6)
     assert 0.8 < cube_pos[2] < 0.85  # on the table (top at 0.8 m)
 
 
@@ -228,7 +229,8 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
     env = LiftEnv(obs_type="agent_pos", horizon=len(gripper))
     try:
         obs, _ = env.reset(seed=failure_modes.SEED_OFFSET)
-        start_distance_cm = 100 * np.linalg.norm(obs["environment_state"][:3] - obs["agent_pos"][:3])
+        cube_pos, eef_pos = obs["environment_state"][ENV_STATE_CUBE_POS], obs["agent_pos"][STATE_EEF_POS]
+        start_distance_cm = 100 * np.linalg.norm(cube_pos - eef_pos)
         episode = failure_modes.describe_episode(StillArm(), env, failure_modes.SEED_OFFSET)
     finally:
         env.close()
