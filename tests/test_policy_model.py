@@ -58,8 +58,8 @@ def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(low
         raw_actions[:, 3:6].norm(dim=-1) * policy.config.delta_rot_scale_rad <= MAX_DELTA_ROT_RAD)
     assert inside.any()  # and where they did nothing, the env gets the sample itself
     torch.testing.assert_close(scaled[inside], raw_actions[inside, :6], rtol=1e-4, atol=1e-5)
-    new_log_prob, entropy, new_value = agent.evaluate(batch, raw_actions)
-    assert log_prob.shape == entropy.shape == value.shape == (len(dataset),)
+    new_log_prob, entropies, new_value = agent.evaluate(batch, raw_actions)
+    assert log_prob.shape == entropies["continuous"].shape == entropies["gripper"].shape == value.shape == (len(dataset),)
     torch.testing.assert_close(new_log_prob, log_prob, rtol=1e-5, atol=1e-5 * float(log_prob.abs().max()))
     torch.testing.assert_close(new_value, value, rtol=1e-5, atol=1e-5 * float(value.abs().max()))
     # the log-prob is the Gaussian's at the raw sample: recomputed by hand from the mean and the std
@@ -70,8 +70,13 @@ def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(low
     by_hand = (-0.5 * ((raw_actions[:, :6] - mean) / std) ** 2 - std.log() - 0.5 * torch.log(torch.tensor(2 * torch.pi))).sum(-1)
     by_hand = by_hand + gripper.logits.log_softmax(-1).gather(1, raw_actions[:, 6:].long()).squeeze(1)
     torch.testing.assert_close(new_log_prob.detach(), by_hand, rtol=1e-4, atol=1e-4 * float(by_hand.abs().max()))
+    # each part's entropy by hand: the Gaussian's sum over its 6 dims, the gripper class's -sum p log p
+    gaussian = 6 * 0.5 * torch.log(torch.tensor(2 * torch.pi * torch.e)) + std.log().sum()
+    torch.testing.assert_close(entropies["continuous"].detach(), gaussian.expand(len(dataset)), rtol=1e-5, atol=1e-6)
+    p = gripper.logits.softmax(-1)
+    torch.testing.assert_close(entropies["gripper"].detach(), -(p * p.log()).sum(-1), rtol=1e-4, atol=1e-6)
     # gradients reach the learned log-std and the value head
-    (-(new_log_prob.mean()) - entropy.mean() + new_value.pow(2).mean()).backward()
+    (-(new_log_prob.mean()) - sum(entropies.values()).mean() + new_value.pow(2).mean()).backward()
     assert policy.log_std.grad is not None and policy.model.value_head.weight.grad is not None
 
 

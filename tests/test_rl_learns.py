@@ -75,7 +75,7 @@ class MLPAgent:
 
     def evaluate(self, obs, actions):
         dist = self._dist(obs)
-        return dist.log_prob(actions).sum(-1), dist.entropy().sum(-1), self.value(obs)
+        return dist.log_prob(actions).sum(-1), {"action": dist.entropy().sum(-1)}, self.value(obs)
 
 
 def make_workers(seed: int) -> InlineWorkers:

@@ -182,3 +182,22 @@ def test_gradient_share_weighting_makes_theta_the_bc_share(lowdim_dataset_root):
     assert "bc_scale" not in pure_ppo
     with pytest.raises(ValueError, match="term_weighting"):
         PPOConfig(term_weighting="share")
+
+
+def test_gripper_entropy_bonus_adds_its_own_gradient_and_leaves_the_log_std_alone(lowdim_dataset_root):
+    policy, agent, demo_batch, minibatch = bcrl_policy_with_batches(lowdim_dataset_root)
+    coef = 0.5
+
+    def grads_with(cfg):
+        policy.zero_grad()
+        bcrl_loss(agent, minibatch, demo_batch, theta=0.0, cfg=cfg, bc_forward=policy.forward)[0].backward()
+        return _grads(policy)
+
+    plain, with_bonus = grads_with(PPOConfig()), grads_with(PPOConfig(gripper_entropy_coef=coef))
+    policy.zero_grad()
+    (-coef * agent.evaluate(minibatch["obs"], minibatch["actions"])[1]["gripper"].mean()).backward()
+    bonus = _grads(policy)
+    assert any(bonus[n].abs().sum() > 0 for n in bonus if "gripper_head" in n)
+    for name in plain:
+        assert_close_to_scale(with_bonus[name] - plain[name], bonus[name], rtol=1e-4, msg=name)
+    assert torch.equal(bonus["log_std"], torch.zeros_like(bonus["log_std"]))  # the Gaussian's entropy is not in it

@@ -30,7 +30,8 @@ class Agent(Protocol):
     def to_env_action(self, actions: Tensor) -> Tensor: ...  # what env.step gets (e.g. clamped)
     def mean_action(self, obs: dict[str, Tensor]) -> Tensor: ...  # deterministic, already an env action
     def value(self, obs: dict[str, Tensor]) -> Tensor: ...
-    def evaluate(self, obs: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, Tensor, Tensor]: ...
+    # log_prob, entropy per action part ({"action": ...}, or e.g. {"continuous": ..., "gripper": ...}), value
+    def evaluate(self, obs: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, dict[str, Tensor], Tensor]: ...
 
 
 def flatten_observation(obs) -> dict[str, np.ndarray]:
@@ -113,8 +114,8 @@ class BCRLAgent:
     def evaluate(self, obs, raw_actions):
         outputs = self.policy.model(obs)
         continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
-        log_prob, entropy = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
-        return log_prob, entropy, self._required_value(outputs.value)
+        log_prob, entropies = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
+        return log_prob, entropies, self._required_value(outputs.value)
 
     @staticmethod
     def _required_value(value: Tensor | None) -> Tensor:
@@ -129,7 +130,7 @@ class BCRLAgent:
         n = continuous_dist.mean.shape[-1]  # the continuous dims, then the gripper class
         log_prob = continuous_dist.log_prob(raw_actions[:, :n]).sum(-1)
         log_prob = log_prob + gripper_dist.log_prob(raw_actions[:, n].long())
-        return log_prob, continuous_dist.entropy().sum(-1) + gripper_dist.entropy()
+        return log_prob, {"continuous": continuous_dist.entropy().sum(-1), "gripper": gripper_dist.entropy()}
 
     def to_env_action(self, raw_actions):
         n = self.policy.log_std.shape[0]

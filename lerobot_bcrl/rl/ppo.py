@@ -38,7 +38,10 @@ class PPOConfig:
     clip_eps: float = 0.2  # clipped surrogate's epsilon
     c1: float = 1.0  # weight of the clipped surrogate in L_PPO (docs/method.md section 4)
     c2: float = 0.5  # weight of the value loss
-    entropy_coef: float = 0.0
+    entropy_coef: float = 0.0  # bonus on the whole action's entropy
+    # Bonus on the gripper class's entropy alone (agents whose `evaluate` names a "gripper" part): exploration of
+    # when to close, which the continuous log-std does not give (the BC gripper is near-certain: ~0.01 nats).
+    gripper_entropy_coef: float = 0.0
     update_epochs: int = 4
     minibatch_size: int = 256
     learning_rate: float = 1e-4
@@ -129,12 +132,15 @@ def bc_gradient_scale(module: torch.nn.Module, bc_loss: Tensor, ppo_loss: Tensor
 def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: float, cfg: PPOConfig,
               bc_forward=None, measure_gradients: bool = False) -> tuple[Tensor, dict[str, float]]:
     """`theta * L_BC + (1 - theta) * L_PPO` on one PPO minibatch and one preprocessed demo minibatch."""
-    new_log_prob, entropy, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
+    new_log_prob, entropies, new_value = agent.evaluate(minibatch["obs"], minibatch["actions"])
+    entropy = sum(entropies.values())
     advantages = minibatch["advantages"]
     if cfg.normalize_advantages and advantages.numel() > 1:
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     ppo = ppo_loss_terms(new_log_prob, minibatch["log_probs"], advantages, new_value, minibatch["returns"], cfg.clip_eps)
     ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
+    if cfg.gripper_entropy_coef:
+        ppo_loss = ppo_loss - cfg.gripper_entropy_coef * entropies["gripper"].mean()
     value_loss = cfg.c2 * ppo["value_loss"]
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
     bc_start = time.perf_counter()
@@ -151,6 +157,7 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     loss = theta * bc_loss + (1 - theta) * ppo_loss + value_loss
 
     metrics.update({name: float(value.detach()) for name, value in ppo.items()})
+    metrics.update({f"{part}_entropy": float(value.mean().detach()) for part, value in entropies.items()})
     metrics.update(entropy=float(entropy.mean().detach()), ppo_loss=float(ppo_loss.detach()), loss=float(loss.detach()),
                    bc_term_s=bc_term_s)
     return loss, metrics
