@@ -201,3 +201,13 @@ def test_gripper_entropy_bonus_adds_its_own_gradient_and_leaves_the_log_std_alon
     for name in plain:
         assert_close_to_scale(with_bonus[name] - plain[name], bonus[name], rtol=1e-4, msg=name)
     assert torch.equal(bonus["log_std"], torch.zeros_like(bonus["log_std"]))  # the Gaussian's entropy is not in it
+
+    class WithoutGripper:  # an agent whose action has no gripper class
+        module = policy
+
+        def evaluate(self, obs, actions):
+            log_prob, entropies, value = agent.evaluate(obs, actions)
+            return log_prob, {"action": sum(entropies.values())}, value
+
+    with pytest.raises(ValueError, match="gripper class"):
+        bcrl_loss(WithoutGripper(), minibatch, demo_batch, theta=0.0, cfg=PPOConfig(gripper_entropy_coef=coef))

@@ -23,7 +23,8 @@ TIME_COLUMNS = {
 LOG_COLUMNS = [
     "env_steps", "ppo_iteration", "optim_step", "theta", "wall_s", "worker_restarts", *TIME_COLUMNS,
     "train_return", "train_success", "train_episodes",
-    "loss", "policy_loss", "value_loss", "entropy", "continuous_entropy", "gripper_entropy", "approx_kl", "clipfrac", "explained_variance",
+    "loss", "policy_loss", "value_loss", "entropy", "continuous_entropy", "gripper_entropy",
+    "approx_kl", "clipfrac", "explained_variance",
     "optim_steps_taken", "kl_stopped",
     "grad_norm", "bc_term_grad_norm", "ppo_term_grad_norm", "bc_grad_share", "bc_scale",
     "bc_loss", "bc_l1", "bc_l2", "bc_cosine", "bc_gripper_ce", "bc_rot_l1", "bc_rot_l2",

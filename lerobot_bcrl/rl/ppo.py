@@ -40,7 +40,8 @@ class PPOConfig:
     c2: float = 0.5  # weight of the value loss
     entropy_coef: float = 0.0  # bonus on the whole action's entropy
     # Bonus on the gripper class's entropy alone (agents whose `evaluate` names a "gripper" part): exploration of
-    # when to close, which the continuous log-std does not give (the BC gripper is near-certain: ~0.01 nats).
+    # when to close, which the continuous log-std does not give (the BC gripper is near-certain: ~0.01 nats). 0 in
+    # the recipe: at 0.1 and 1.0 the gripper drifted to a coin flip once theta_t reached 0 (docs/RESULTS.md).
     gripper_entropy_coef: float = 0.0
     update_epochs: int = 4
     minibatch_size: int = 256
@@ -140,6 +141,8 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     ppo = ppo_loss_terms(new_log_prob, minibatch["log_probs"], advantages, new_value, minibatch["returns"], cfg.clip_eps)
     ppo_loss = cfg.c1 * ppo["policy_loss"] - cfg.entropy_coef * entropy.mean()
     if cfg.gripper_entropy_coef:
+        if "gripper" not in entropies:
+            raise ValueError(f"ppo.gripper_entropy_coef needs an agent with a gripper class, not {list(entropies)}")
         ppo_loss = ppo_loss - cfg.gripper_entropy_coef * entropies["gripper"].mean()
     value_loss = cfg.c2 * ppo["value_loss"]
     # No demo forward pass when the BC term has no weight (pure PPO, or after phi).
