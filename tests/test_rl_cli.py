@@ -167,6 +167,39 @@ def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_s
     assert [e["episode_return"] for e in again["episodes"]] == pytest.approx([e["episode_return"] for e in result["episodes"]])
 
 
+@pytest.mark.slow
+def test_dense_training_reward_leaves_validation_and_test_on_the_envs_reward(lowdim_dataset_root, tmp_path):
+    run = tmp_path / "run"
+    run_cli("bcrl-finetune", *finetune_args(lowdim_dataset_root, run, 128, "--policy.type=bcrl", "--policy.push_to_hub=false",
+                                            "--rollout.dense_reward=true", "--eval_freq=128", "--eval_episodes=1"))
+    rows = list(csv.DictReader((run / "logs.csv").open()))
+    trained = [r for r in rows if r["train_return"]]
+    validated = [r for r in rows if r["eval_return"]]
+    assert trained and validated
+    # robosuite's reaching term is > 0 at every step: a shaped episode's return is never 0 nor a multiple of 2.25
+    for row in trained:
+        assert float(row["train_return"]) > 0 and float(row["train_return"]) / 2.25 % 1 > 1e-6
+    # the sparse reward: 2.25 for each lifted step, 0 otherwise
+    for row in validated:
+        assert float(row["eval_return"]) / 2.25 % 1 == pytest.approx(0, abs=1e-6)
+    for episode in json.loads((run / "eval_final.json").read_text())["episodes"]:
+        assert episode["episode_return"] == pytest.approx(2.25 * episode["lifted_steps"], abs=1e-6)
+
+
+def test_dense_training_reward_needs_an_env_that_has_one(tmp_path):
+    from lerobot.envs.configs import PushtEnv
+
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+    from lerobot_bcrl.rl.configuration import FinetuneConfig, RolloutConfig
+    from lerobot_bcrl.rl.ppo import finetune
+
+    cfg = FinetuneConfig(policy=BCRLConfig(), env=PushtEnv(), rollout=RolloutConfig(dense_reward=True),
+                         output_dir=tmp_path / "run")
+    with pytest.raises(ValueError, match="--rollout.dense_reward"):
+        finetune(cfg)
+    assert not (tmp_path / "run").exists()
+
+
 def test_best_validation_selection_needs_periodic_evaluations(tmp_path):
     from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
     from lerobot_bcrl.rl.configuration import FinetuneConfig

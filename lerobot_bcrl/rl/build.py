@@ -49,9 +49,10 @@ def start_workers(cfg, policy, preprocessor, postprocessor, seed: int) -> Rollou
         gym_kwargs["obs_type"] = "agent_pos"
     policy_files = {path.name: path.read_bytes() for path in sorted(policy_dir.iterdir())}  # a cluster's nodes too
     eval_gym_kwargs = {**gym_kwargs, "rerun_dir": str(cfg.output_dir / "eval_rrd")} if cfg.eval_rerun else gym_kwargs
+    train_gym_kwargs = {**gym_kwargs, "dense_reward": True} if cfg.rollout.dense_reward else gym_kwargs
     worker_kwargs = [
         {
-            "make_env": partial(make_gym_env, cfg.env.gym_id, gym_kwargs),
+            "make_env": partial(make_gym_env, cfg.env.gym_id, train_gym_kwargs),
             "make_eval_env": partial(make_gym_env, cfg.env.gym_id, eval_gym_kwargs),
             "make_agent": partial(BCRLAgent.from_files, policy_files),
             "n_envs": cfg.rollout.envs_per_worker,

@@ -37,6 +37,9 @@ class RolloutConfig:
     n_workers: int = 2  # subprocesses or actors; 0 runs the envs in this process (process backend)
     envs_per_worker: int = 2
     steps_per_env: int = 128  # rollout length per env per iteration
+    # PPO's rollouts on robosuite's shaped reward (reaching, grasping, then 2.25 lifted) where the env's is sparse;
+    # validation, the choice and the test keep the env's reward, so results stay comparable
+    dense_reward: bool = False
     timeout_s: float = WORKER_TIMEOUT_S  # a worker silent this long in a collect or evaluation is killed and replaced
     max_worker_failures: int = MAX_WORKER_FAILURES  # a worker failing this many calls in a row stops the run
 
@@ -107,6 +110,8 @@ class FinetuneConfig:
             raise ValueError(f"--select={self.select!r}: choose one of {SELECTIONS}")
         if self.select == "best_validation" and self.total_env_steps > 0 and not self.eval_freq:
             raise ValueError("--select=best_validation chooses among the periodic evaluations: give --eval_freq > 0")
+        if self.rollout.dense_reward and "dense_reward" not in self.env.gym_kwargs:
+            raise ValueError(f"--rollout.dense_reward=true: env {self.env.type!r} has no dense reward to train on")
         checkpoints = self.output_dir / "checkpoints"
         if self.resume and not (checkpoints / "last").exists():
             raise FileNotFoundError(f"--resume=true but there is no checkpoint at {checkpoints / 'last'}")
