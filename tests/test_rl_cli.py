@@ -168,6 +168,37 @@ def test_best_validation_selection_evaluates_the_chosen_checkpoint_on_the_test_s
 
 
 @pytest.mark.slow
+def test_reselection_evaluates_every_tied_checkpoint_again_and_keeps_the_best_over_all_validation_episodes(
+        lowdim_dataset_root, tmp_path):
+    from lerobot_bcrl.rl.checkpoint import checkpoint_name
+    from lerobot_bcrl.rl.ppo import EVAL_SEED_OFFSET, VALIDATION_SEED_OFFSET
+
+    run = tmp_path / "run"
+    # from scratch no policy lifts in 40 steps: every validation ties on success 0 and the dense return decides;
+    # checkpoints only at the end, so the tied ones on disk were saved for the reselection
+    args = [a for a in finetune_args(lowdim_dataset_root, run, 256) if not a.startswith(("--eval_freq", "--save_freq"))]
+    output = run_cli("bcrl-finetune", *args, "--policy.type=bcrl", "--policy.push_to_hub=false", "--env.dense_reward=true",
+                     "--select=best_validation", "--eval_freq=128", "--eval_episodes=2", "--reselect_episodes=3",
+                     "--save_freq=100000", "--final_eval_episodes=2")
+    rows = [r for r in csv.DictReader((run / "logs.csv").open()) if r["eval_return"]]
+    assert [int(r["env_steps"]) for r in rows] == [0, 128, 256] and {float(r["eval_success"]) for r in rows} == {0.0}
+    result = json.loads((run / "eval_final.json").read_text())
+    chosen = result["validation"]
+    candidates = chosen["candidates"]
+    assert [c["env_steps"] for c in candidates] == [0, 128, 256]  # every tied policy was saved and evaluated again
+    assert all((run / "checkpoints" / checkpoint_name(c["env_steps"])).is_dir() for c in candidates)
+    for candidate, row in zip(candidates, rows):  # pooled over the first 2 and the 3 further validation episodes
+        again_mean = (5 * candidate["return"] - 2 * float(row["eval_return"])) / 3
+        assert candidate["episodes"] == 5 and again_mean > 0  # the dense reward is positive at every step
+    assert chosen["first_choice"]["env_steps"] == int(max(rows, key=lambda r: float(r["eval_return"]))["env_steps"])
+    best = max(candidates, key=lambda c: (c["success"], c["return"]))
+    assert result["selected_env_steps"] == best["env_steps"] and chosen["seed_offset"] == VALIDATION_SEED_OFFSET
+    assert (run / "checkpoints" / "best").resolve().name == checkpoint_name(best["env_steps"])
+    assert [e["seed"] for e in result["episodes"]] == [EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + 1]
+    assert "among the 3 that tied on the first 2" in output
+
+
+@pytest.mark.slow
 def test_dense_training_reward_leaves_validation_and_test_on_the_envs_reward(lowdim_dataset_root, tmp_path):
     run = tmp_path / "run"
     run_cli("bcrl-finetune", *finetune_args(lowdim_dataset_root, run, 128, "--policy.type=bcrl", "--policy.push_to_hub=false",

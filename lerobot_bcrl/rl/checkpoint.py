@@ -32,9 +32,10 @@ def point_symlink(checkpoints_dir: Path, name: str, checkpoint_dir: Path) -> Non
 
 
 def save_checkpoint(cfg, env_steps: int, agent, postprocessor, optimizer, schedule_state: ScheduleState,
-                    reward_scaler=None, best: dict | None = None) -> Path:
+                    reward_scaler=None, best: dict | None = None, validations: list[dict] = ()) -> Path:
     """Write `checkpoints/<env_steps>` through a temporary folder and point `last` at it. `best`: the validation
-    evaluation that chose the result so far (`--select=best_validation`), kept for a resume."""
+    evaluation that chose the result so far (`--select=best_validation`), and `validations` all of them so far, kept
+    for a resume."""
     from lerobot.optim.optimizers import save_optimizer_state
     from lerobot.utils.random_utils import save_rng_state
 
@@ -53,7 +54,8 @@ def save_checkpoint(cfg, env_steps: int, agent, postprocessor, optimizer, schedu
     save_rng_state(state_dir)
     training_step = {"env_steps": env_steps, "optim_step": schedule_state.optim_step,
                      "ppo_iteration": schedule_state.ppo_iteration, "theta": schedule_state.theta(cfg.schedule),
-                     "reward_scaler": reward_scaler.state_dict() if reward_scaler else None, "best": best}
+                     "reward_scaler": reward_scaler.state_dict() if reward_scaler else None, "best": best,
+                     "validations": list(validations)}
     (state_dir / TRAINING_STEP_FILE).write_text(json.dumps(training_step, indent=2))
     if final_dir.exists():
         shutil.rmtree(final_dir)

@@ -25,7 +25,9 @@ def finetune_cli(cfg: FinetuneConfig) -> None:
     if result["validation"]:
         chosen = result["validation"]
         lines.append(f"  the policy at {result['selected_env_steps']} env steps, chosen on {chosen['episodes']} validation"
-                     f" episodes (success {100 * chosen['success']:.0f} %, return {chosen['return']:.1f})")
+                     f" episodes (success {100 * chosen['success']:.0f} %, return {chosen['return']:.1f})"
+                     + (f" among the {len(chosen['candidates'])} that tied on the first {cfg.eval_episodes}"
+                        if "candidates" in chosen else ""))
     checkpoint = "best" if result["validation"] else "last"
     lines += [f"  checkpoint: {cfg.output_dir / 'checkpoints' / checkpoint / 'pretrained_model'}",
               f"  logs: {cfg.output_dir / 'logs.csv'}; evaluation: {cfg.output_dir / 'eval_final.json'}"]

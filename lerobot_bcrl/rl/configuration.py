@@ -81,6 +81,10 @@ class FinetuneConfig:
     # the policy of the periodic evaluation with the highest success rate, then return (the earliest of equals),
     # the starting policy included (evaluated before the first update), like robomimic's best-rollout checkpoints.
     select: str = "last"
+    # With best_validation: the checkpoints whose validation tied the chosen one's success are evaluated on this many
+    # further validation seeds at the end, and the best over all its validation episodes becomes the result (0: the
+    # first choice stands). A fixed set of eval_episodes seeds can be solved by policies that fail elsewhere.
+    reselect_episodes: int = 0
     final_eval_episodes: int = 50
     save_freq: int = 50_000  # env steps between checkpoints (and one at the end)
     # Log every evaluation episode to <output_dir>/eval_rrd/*.rrd: what happened, the policy's predicted
@@ -110,6 +114,8 @@ class FinetuneConfig:
             raise ValueError(f"--select={self.select!r}: choose one of {SELECTIONS}")
         if self.select == "best_validation" and self.total_env_steps > 0 and not self.eval_freq:
             raise ValueError("--select=best_validation chooses among the periodic evaluations: give --eval_freq > 0")
+        if self.reselect_episodes and self.select != "best_validation":
+            raise ValueError("--reselect_episodes evaluates the candidates of --select=best_validation again: give both")
         if self.rollout.dense_reward and "dense_reward" not in self.env.gym_kwargs:
             raise ValueError(f"--rollout.dense_reward=true: env {self.env.type!r} has no dense reward to train on")
         checkpoints = self.output_dir / "checkpoints"

@@ -18,8 +18,8 @@ from lerobot_bcrl import frame_cache
 from lerobot_bcrl.files import write_json_atomically
 from lerobot_bcrl.rl.agent import Agent, BCRLAgent
 from lerobot_bcrl.rl.build import build_policy, reset_exploration_std, start_workers
-from lerobot_bcrl.rl.checkpoint import (better_on_validation, load_training_state, point_symlink, policy_env_steps,
-                                        save_checkpoint)
+from lerobot_bcrl.rl.checkpoint import (better_on_validation, checkpoint_name, load_training_state, point_symlink,
+                                        policy_env_steps, save_checkpoint)
 from lerobot_bcrl.rl.demo_buffer import DemoBuffer
 from lerobot_bcrl.rl.logger import RunLogger, summarize_episodes
 from lerobot_bcrl.rl.normalization import RewardScaler
@@ -263,9 +263,11 @@ def finetune(cfg) -> dict:
     optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.ppo.learning_rate, eps=1e-5)
     reward_scaler = RewardScaler(cfg.ppo.gamma, cfg.rollout.n_envs) if cfg.ppo.normalize_rewards else None
     schedule, env_steps, best = ScheduleState(), 0, None  # best: the validation evaluation behind checkpoints/best
+    validations = []  # every periodic evaluation: {env_steps, success, return}
     if cfg.resume:
         state = load_training_state(checkpoints_dir / "last", optimizer)
         schedule, env_steps, best = ScheduleState(state["optim_step"], state["ppo_iteration"]), state["env_steps"], state["best"]
+        validations = state["validations"]
         if reward_scaler and state["reward_scaler"]:
             reward_scaler.load_state_dict(state["reward_scaler"])
         cfg.policy.pretrained_path = initial_policy_path
@@ -286,17 +288,40 @@ def finetune(cfg) -> dict:
     def save():
         nonlocal last_save
         last_save = env_steps
-        return save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule, reward_scaler, best)
+        return save_checkpoint(cfg, env_steps, agent, postprocessor, optimizer, schedule, reward_scaler, best, validations)
 
     def validate() -> dict:
-        """A periodic evaluation; with --select=best_validation a better policy is saved as checkpoints/best."""
+        """A periodic evaluation; with --select=best_validation a better policy is saved as checkpoints/best, and
+        with --reselect_episodes one that ties its success is saved too, to be evaluated again at the end."""
         nonlocal best
         metrics = evaluate(cfg.eval_episodes, VALIDATION_SEED_OFFSET)[0]
         candidate = {"env_steps": env_steps, "success": metrics["eval_success"], "return": metrics["eval_return"]}
+        validations.append(candidate)
         if cfg.select == "best_validation" and better_on_validation(candidate, best):
             best = candidate
             point_symlink(checkpoints_dir, "best", save())
+        elif cfg.reselect_episodes and candidate["success"] == best["success"]:
+            save()
         return metrics
+
+    def reselect() -> dict:
+        """The saved policies whose validation tied the best success, each evaluated on the next
+        --reselect_episodes validation seeds: the best over all its validation episodes (success, then return; the
+        earliest of equals) becomes checkpoints/best."""
+        first, more = cfg.eval_episodes, cfg.reselect_episodes
+        tied = [v for v in validations if v["success"] == best["success"]
+                and (checkpoints_dir / checkpoint_name(v["env_steps"])).exists()]
+        pooled = []
+        for v in tqdm(tied, desc=f"reselect on {more} more validation episodes", unit="policy"):
+            checkpoint = checkpoints_dir / checkpoint_name(v["env_steps"]) / "pretrained_model"
+            agent.load_state_dict(BCRLAgent.from_pretrained(checkpoint).state_dict())
+            again = evaluate(more, VALIDATION_SEED_OFFSET + first)[0]
+            pooled.append({"env_steps": v["env_steps"], "episodes": first + more,
+                           "success": (first * v["success"] + more * again["eval_success"]) / (first + more),
+                           "return": (first * v["return"] + more * again["eval_return"]) / (first + more)})
+        chosen = max(pooled, key=lambda p: (p["success"], p["return"]))  # max keeps the earliest of equals
+        point_symlink(checkpoints_dir, "best", checkpoints_dir / checkpoint_name(chosen["env_steps"]))
+        return {**chosen, "first_choice": best, "candidates": pooled}
 
     start_time, last_eval, last_save, last_train = time.time(), env_steps, env_steps, {}
     progress = tqdm(total=cfg.total_env_steps, initial=env_steps, unit="step", desc=f"bcrl-finetune {cfg.method}",
@@ -332,7 +357,10 @@ def finetune(cfg) -> dict:
         progress.close()
         if not (checkpoints_dir / "last").exists():  # BC only: still leave a checkpoint to evaluate
             save()
-        if best is not None:  # the chosen policy, not the last, is the run's result
+        chosen = {**best, "episodes": cfg.eval_episodes} if best else None
+        if best is not None and cfg.reselect_episodes:
+            chosen = reselect()
+        if chosen is not None:  # the chosen policy, not the last, is the run's result
             agent.load_state_dict(BCRLAgent.from_pretrained(checkpoints_dir / "best" / "pretrained_model").state_dict())
         final, episodes = evaluate(cfg.final_eval_episodes, EVAL_SEED_OFFSET)
     finally:
@@ -345,8 +373,8 @@ def finetune(cfg) -> dict:
               "policy_path": str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None,
               "policy_env_steps": policy_env_steps(cfg.policy.pretrained_path),
               # the policy evaluated below: the last, or the one --select=best_validation chose, and why
-              "select": cfg.select, "selected_env_steps": best["env_steps"] if best else env_steps,
-              "validation": {**best, "seed_offset": VALIDATION_SEED_OFFSET, "episodes": cfg.eval_episodes} if best else None,
+              "select": cfg.select, "selected_env_steps": chosen["env_steps"] if chosen else env_steps,
+              "validation": {**chosen, "seed_offset": VALIDATION_SEED_OFFSET} if chosen else None,
               **final, "episodes": [asdict(e) for e in episodes]}
     write_json_atomically(cfg.output_dir / "eval_final.json", result)
     return result
