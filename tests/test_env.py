@@ -238,3 +238,26 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
     assert episode["nearest_cm"] == pytest.approx(start_distance_cm, rel=0.05)
     assert episode["final_distance_cm"] == pytest.approx(start_distance_cm, rel=0.05)
     assert episode["cube_rose_cm"] < 0.2 and episode["cube_slid_cm"] < 0.2
+
+
+def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_counts_the_lifted_steps():
+    """scripts/expert_speed.py on two fresh seeds: the plain expert and one that closes in 3 steps from a lower
+    hover at twice the gain; the sparse return is 2.25 for each step from the lift to the horizon (the cube held)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "expert_speed.py"
+
+    def run(*knobs: str) -> dict:
+        out = subprocess.run([sys.executable, str(script), "--episodes=2", *knobs], capture_output=True, text=True,
+                             check=True, timeout=300, cwd=script.parents[1])
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    plain, fast = run(), run("--close_steps=3", "--position_gain=4", "--hover_height_m=0.04")
+    assert plain["close_steps"] == 8 and fast["close_steps"] == 3
+    assert plain["success"] == fast["success"] == 1.0
+    assert fast["steps_to_lift"] < plain["steps_to_lift"] < 200
+    for result in (plain, fast):
+        assert result["return"] == pytest.approx(2.25 * (200 - result["steps_to_lift"] + 1), rel=0.05)
