@@ -16,8 +16,7 @@ from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from dataset_tools.record import record_episode
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.envs.lift import LiftEnv
-
-SEED_OFFSET = 3_000_000
+from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
 
 
 def main() -> None:
@@ -31,7 +30,7 @@ def main() -> None:
                                 hover_height_m=args.hover_height_m)
     env, no_noise = LiftEnv(obs_type="agent_pos"), DemonstratorConfig(noise_std=0.0)
     episodes = [record_episode(env, expert, DemonstratorNoise(no_noise, controller.CONTROLLER_ACTION_DIM, i),
-                               SEED_OFFSET + i)[1] for i in range(args.episodes)]
+                               ANALYSIS_SEED_OFFSET + i)[1] for i in range(args.episodes)]
     lifts = [e["steps_to_lift"] for e in episodes if e["success"]]
     print(json.dumps({"close_steps": args.close_steps, "position_gain": args.position_gain,
                       "hover_height_m": args.hover_height_m, "episodes": args.episodes,

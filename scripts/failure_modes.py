@@ -16,8 +16,7 @@ from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.features import ENV_STATE_CUBE_POS, ENV_STATE_EEF_TO_CUBE
 from lerobot_bcrl.geometry import GRIPPER_CLOSED, gripper_class
 from lerobot_bcrl.policy_runner import PolicyRunner
-
-SEED_OFFSET = 3_000_000
+from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
 
 
 def describe_episode(runner: PolicyRunner, env: LiftEnv, seed: int) -> dict:
@@ -50,7 +49,7 @@ def main() -> None:
     env, runner = LiftEnv(obs_type="agent_pos"), PolicyRunner(args.policy)
     failures = 0
     for i in range(args.episodes):
-        episode = describe_episode(runner, env, SEED_OFFSET + i)
+        episode = describe_episode(runner, env, ANALYSIS_SEED_OFFSET + i)
         if not episode.pop("lifted"):
             failures += 1
             print(json.dumps(episode))

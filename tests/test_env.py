@@ -9,6 +9,7 @@ from dataset_tools.experts import ScriptedLiftExpert
 from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.features import (CAMERA_NAME, ENV_STATE_CUBE_POS, ENV_STATE_DIM, ENV_STATE_EEF_TO_CUBE, LIFT_REWARD,
                                     STATE_DIM, STATE_EEF_POS)
+from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
 
 NO_OP = np.array([0, 0, 0, 0, 0, 0, 1.0, -1.0])
 
@@ -228,10 +229,10 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
 
     env = LiftEnv(obs_type="agent_pos", horizon=len(gripper))
     try:
-        obs, _ = env.reset(seed=failure_modes.SEED_OFFSET)
+        obs, _ = env.reset(seed=ANALYSIS_SEED_OFFSET)
         cube_pos, eef_pos = obs["environment_state"][ENV_STATE_CUBE_POS], obs["agent_pos"][STATE_EEF_POS]
         start_distance_cm = 100 * np.linalg.norm(cube_pos - eef_pos)
-        episode = failure_modes.describe_episode(StillArm(), env, failure_modes.SEED_OFFSET)
+        episode = failure_modes.describe_episode(StillArm(), env, ANALYSIS_SEED_OFFSET)
     finally:
         env.close()
     assert episode["lifted"] is False and episode["closings"] == 2

@@ -28,6 +28,7 @@ from lerobot_bcrl.rl.schedule import ScheduleConfig, ScheduleState
 
 EVAL_SEED_OFFSET = 1_000_000  # the final evaluation's (test) seeds: no dataset or training rollout draws them
 VALIDATION_SEED_OFFSET = 2_000_000  # the periodic evaluations' seeds, which may choose the result: never the test's
+ANALYSIS_SEED_OFFSET = 3_000_000  # scripts that look at a policy or the expert (scripts/): they choose nothing
 TERM_WEIGHTINGS = ("loss", "gradient_share")
 
 
