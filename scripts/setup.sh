@@ -63,7 +63,7 @@ if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import sys; assert sys.ve
   rm -rf .venv
   "$PY" -m venv .venv
 fi
-stamp=.venv/.installed-$(cat pyproject.toml | sha1sum | cut -c1-12)
+stamp=.venv/.installed-$(cat pyproject.toml scripts/constraints.txt | sha1sum | cut -c1-12)
 if [ ! -f "$stamp" ]; then
   # The environment takes ~8 GB (PyPI's torch brings its CUDA libraries even on a CPU machine), and pip holds the
   # downloaded wheels (~3.5 GB) until it has installed them all. pip's cache would keep another copy of them, so it
@@ -73,7 +73,8 @@ if [ ! -f "$stamp" ]; then
     echo "setup: WARNING: ${free_gb} GB free under $(pwd); installing .venv needs about 12 GB (8 GB once done)" >&2
   fi
   .venv/bin/python -m pip install -q --no-cache-dir --upgrade pip
-  .venv/bin/python -m pip install -q --no-cache-dir -e '.[test,ray]' || {
+  # Every package at the exact version of scripts/constraints.txt (within pyproject.toml's ranges).
+  .venv/bin/python -m pip install -q --no-cache-dir -c scripts/constraints.txt -e '.[test,ray]' || {
     echo "setup: pip install failed; if it says 'No space left on device', free about 12 GB under $(pwd) and run again" >&2
     exit 1
   }
