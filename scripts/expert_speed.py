@@ -1,9 +1,12 @@
-"""How soon the scripted expert can lift: the expert as it is, or with its timing knobs changed, on fresh seeds.
+"""How soon the scripted expert, or a policy, lifts: phase by phase, the expert with its timing knobs, on fresh seeds.
 
 A bound on what a return target asks: the sparse reward pays 2.25 a step once the cube is up, so a mean return of
 R at 100 % success needs a lift by step ~200 - R / 2.25. The seeds start at 3,000,000 (apart from the
-demonstrations', validation's and test's); no noise. Prints one JSON line: success, mean steps to lift, mean return.
+demonstrations', validation's and test's); no noise; a policy acts through `bcrl-record`'s path for a learned expert.
+Prints one JSON line: success, mean return and, over the lifted episodes, the mean step of the reach (the end
+effector first within 1 cm of the cube's centre horizontally), of the first gripper command to close, of the lift.
     .venv/bin/python scripts/expert_speed.py --episodes=50 --close_steps=3 --position_gain=4 --hover_height_m=0.04
+    .venv/bin/python scripts/expert_speed.py --episodes=50 --policy=<run>/checkpoints/best/pretrained_model
 """
 
 import argparse
@@ -11,32 +14,53 @@ import json
 
 import numpy as np
 
-from dataset_tools.experts import ScriptedLiftExpert
+from dataset_tools.experts import PolicyExpert, ScriptedLiftExpert
 from dataset_tools.noise import DemonstratorConfig, DemonstratorNoise
 from dataset_tools.record import record_episode
+from lerobot_bcrl import features as F
 from lerobot_bcrl.envs import controller
 from lerobot_bcrl.envs.lift import LiftEnv
+from lerobot_bcrl.geometry import GRIPPER_CLOSED, gripper_class
 from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
+
+REACH_M = 0.01
+
+
+def phase_steps(frames: dict) -> dict:
+    """The first step of the reach and of the first closing command (None where the episode has none)."""
+    horizontal_m = np.linalg.norm(frames[F.ENV_STATE_KEY][:, F.ENV_STATE_EEF_TO_CUBE][:, :2], axis=1)
+    closing = np.array([gripper_class(g) == GRIPPER_CLOSED for g in frames[F.ACTION_KEY][:, -1]])
+    first = lambda flags: int(np.argmax(flags)) if flags.any() else None  # noqa: E731
+    return {"reach_step": first(horizontal_m < REACH_M), "first_close_step": first(closing)}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--policy", default=None, help="a pretrained_model folder, timed instead of the scripted expert")
     defaults = ScriptedLiftExpert()
     for knob in ("close_steps", "position_gain", "hover_height_m"):
         parser.add_argument(f"--{knob}", type=type(getattr(defaults, knob)), default=getattr(defaults, knob))
     args = parser.parse_args()
-    expert = ScriptedLiftExpert(close_steps=args.close_steps, position_gain=args.position_gain,
-                                hover_height_m=args.hover_height_m)
+    expert = PolicyExpert(args.policy) if args.policy else ScriptedLiftExpert(
+        close_steps=args.close_steps, position_gain=args.position_gain, hover_height_m=args.hover_height_m)
     env, no_noise = LiftEnv(obs_type="agent_pos"), DemonstratorConfig(noise_std=0.0)
-    episodes = [record_episode(env, expert, DemonstratorNoise(no_noise, controller.CONTROLLER_ACTION_DIM, i),
-                               ANALYSIS_SEED_OFFSET + i)[1] for i in range(args.episodes)]
-    lifts = [e["steps_to_lift"] for e in episodes if e["success"]]
-    print(json.dumps({"close_steps": args.close_steps, "position_gain": args.position_gain,
-                      "hover_height_m": args.hover_height_m, "episodes": args.episodes,
-                      "success": float(np.mean([e["success"] for e in episodes])),
-                      "steps_to_lift": float(np.mean(lifts)) if lifts else None,
-                      "return": float(np.mean([e["episode_return"] for e in episodes]))}))
+    episodes = []
+    for i in range(args.episodes):
+        frames, stats = record_episode(env, expert, DemonstratorNoise(no_noise, controller.CONTROLLER_ACTION_DIM, i),
+                                       ANALYSIS_SEED_OFFSET + i)
+        episodes.append(stats | phase_steps(frames))
+    lifted = [e for e in episodes if e["success"]]
+    def mean_step(key: str) -> float | None:  # over the lifted episodes that have the phase
+        steps = [e[key] for e in lifted if e[key] is not None]
+        return float(np.mean(steps)) if steps else None
+
+    who = {"policy": args.policy} if args.policy else {k: getattr(args, k) for k in
+                                                        ("close_steps", "position_gain", "hover_height_m")}
+    print(json.dumps(who | {"episodes": args.episodes, "success": float(np.mean([e["success"] for e in episodes])),
+                            "reach_step": mean_step("reach_step"), "first_close_step": mean_step("first_close_step"),
+                            "steps_to_lift": mean_step("steps_to_lift"),
+                            "return": float(np.mean([e["episode_return"] for e in episodes]))}))
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.features import (CAMERA_NAME, ENV_STATE_CUBE_POS, ENV_STATE_DIM, ENV_STATE_EEF_TO_CUBE, LIFT_REWARD,
                                     STATE_DIM, STATE_EEF_POS)
 from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
+from policy_fixtures import lowdim_dataset_root, save_untrained_checkpoint  # noqa: F401
 
 NO_OP = np.array([0, 0, 0, 0, 0, 0, 1.0, -1.0])
 
@@ -241,9 +242,11 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
     assert episode["cube_rose_cm"] < 0.2 and episode["cube_slid_cm"] < 0.2
 
 
-def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_counts_the_lifted_steps():
+def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_counts_the_lifted_steps(
+        tmp_path, lowdim_dataset_root):  # noqa: F811
     """scripts/expert_speed.py on two fresh seeds: the plain expert and one that closes in 3 steps from a lower
-    hover at twice the gain; the sparse return is 2.25 for each step from the lift to the horizon (the cube held)."""
+    hover at twice the gain; the sparse return is 2.25 for each step from the lift to the horizon (the cube held);
+    the reach comes before the first closing command, which comes before the lift. Then a policy checkpoint."""
     import json
     import subprocess
     import sys
@@ -262,3 +265,15 @@ def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_count
     assert fast["steps_to_lift"] < plain["steps_to_lift"] < 200
     for result in (plain, fast):
         assert result["return"] == pytest.approx(2.25 * (200 - result["steps_to_lift"] + 1), rel=0.05)
+        assert 0 < result["reach_step"] < result["first_close_step"] < result["steps_to_lift"]
+    # the fast expert closes in 3 steps instead of 8: less time from the first closing command to the lift
+    assert fast["steps_to_lift"] - fast["first_close_step"] < plain["steps_to_lift"] - plain["first_close_step"]
+
+    # a policy instead of the expert: an untrained one, through bcrl-record's path for a learned expert
+    checkpoint = tmp_path / "pretrained_model"
+    save_untrained_checkpoint(lowdim_dataset_root, checkpoint)
+    untrained = run("--episodes=1", f"--policy={checkpoint}")
+    assert untrained["policy"] == str(checkpoint) and "close_steps" not in untrained
+    assert untrained["success"] in (0.0, 1.0) and untrained["return"] >= 0.0
+    if untrained["success"] == 0.0:
+        assert untrained["steps_to_lift"] is None and untrained["reach_step"] is None
