@@ -1,10 +1,10 @@
-"""How soon the scripted expert, or a policy, lifts: phase by phase, the expert with its timing knobs, on fresh seeds.
+"""How soon the scripted expert (with its timing knobs) or a policy closes the gripper and lifts, on fresh seeds.
 
 A bound on what a return target asks: the sparse reward pays 2.25 a step once the cube is up, so a mean return of
 R at 100 % success needs a lift by step ~200 - R / 2.25. The seeds start at 3,000,000 (apart from the
 demonstrations', validation's and test's); no noise; a policy acts through `bcrl-record`'s path for a learned expert.
-Prints one JSON line: success, mean return and, over the lifted episodes, the mean step of the reach (the end
-effector first within 1 cm of the cube's centre horizontally), of the first gripper command to close, of the lift.
+Prints one JSON line: success, mean return and, over the lifted episodes, the mean step of the first command to
+close the gripper and of the lift.
     .venv/bin/python scripts/expert_speed.py --episodes=50 --close_steps=3 --position_gain=4 --hover_height_m=0.04
     .venv/bin/python scripts/expert_speed.py --episodes=50 --policy=<run>/checkpoints/best/pretrained_model
 """
@@ -23,21 +23,16 @@ from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.geometry import GRIPPER_CLOSED, gripper_class
 from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
 
-REACH_M = 0.01
-
-
-def phase_steps(frames: dict) -> dict:
-    """The first step of the reach and of the first closing command (None where the episode has none)."""
-    horizontal_m = np.linalg.norm(frames[F.ENV_STATE_KEY][:, F.ENV_STATE_EEF_TO_CUBE][:, :2], axis=1)
+def first_close_step(frames: dict) -> int | None:
+    """The first step whose action commands the gripper closed (None where none does)."""
     closing = np.array([gripper_class(g) == GRIPPER_CLOSED for g in frames[F.ACTION_KEY][:, -1]])
-    first = lambda flags: int(np.argmax(flags)) if flags.any() else None  # noqa: E731
-    return {"reach_step": first(horizontal_m < REACH_M), "first_close_step": first(closing)}
+    return int(np.argmax(closing)) if closing.any() else None
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--policy", default=None, help="a pretrained_model folder, timed instead of the scripted expert")
+    parser.add_argument("--policy", default=None, help="a pretrained_model folder to time instead of the expert")
     defaults = ScriptedLiftExpert()
     for knob in ("close_steps", "position_gain", "hover_height_m"):
         parser.add_argument(f"--{knob}", type=type(getattr(defaults, knob)), default=getattr(defaults, knob))
@@ -49,16 +44,15 @@ def main() -> None:
     for i in range(args.episodes):
         frames, stats = record_episode(env, expert, DemonstratorNoise(no_noise, controller.CONTROLLER_ACTION_DIM, i),
                                        ANALYSIS_SEED_OFFSET + i)
-        episodes.append(stats | phase_steps(frames))
+        episodes.append(stats | {"first_close_step": first_close_step(frames)})
     lifted = [e for e in episodes if e["success"]]
-    def mean_step(key: str) -> float | None:  # over the lifted episodes that have the phase
-        steps = [e[key] for e in lifted if e[key] is not None]
-        return float(np.mean(steps)) if steps else None
+    def mean_step(key: str) -> float | None:  # over the lifted episodes
+        return float(np.mean([e[key] for e in lifted])) if lifted else None
 
     who = {"policy": args.policy} if args.policy else {k: getattr(args, k) for k in
                                                         ("close_steps", "position_gain", "hover_height_m")}
     print(json.dumps(who | {"episodes": args.episodes, "success": float(np.mean([e["success"] for e in episodes])),
-                            "reach_step": mean_step("reach_step"), "first_close_step": mean_step("first_close_step"),
+                            "first_close_step": mean_step("first_close_step"),
                             "steps_to_lift": mean_step("steps_to_lift"),
                             "return": float(np.mean([e["episode_return"] for e in episodes]))}))
 

@@ -246,7 +246,7 @@ def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_count
         tmp_path, lowdim_dataset_root):  # noqa: F811
     """scripts/expert_speed.py on two fresh seeds: the plain expert and one that closes in 3 steps from a lower
     hover at twice the gain; the sparse return is 2.25 for each step from the lift to the horizon (the cube held);
-    the reach comes before the first closing command, which comes before the lift. Then a policy checkpoint."""
+    the first command to close comes before the lift. Then a policy checkpoint through the same path."""
     import json
     import subprocess
     import sys
@@ -265,7 +265,7 @@ def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_count
     assert fast["steps_to_lift"] < plain["steps_to_lift"] < 200
     for result in (plain, fast):
         assert result["return"] == pytest.approx(2.25 * (200 - result["steps_to_lift"] + 1), rel=0.05)
-        assert 0 < result["reach_step"] < result["first_close_step"] < result["steps_to_lift"]
+        assert 0 < result["first_close_step"] < result["steps_to_lift"]
     # the fast expert closes in 3 steps instead of 8: less time from the first closing command to the lift
     assert fast["steps_to_lift"] - fast["first_close_step"] < plain["steps_to_lift"] - plain["first_close_step"]
 
@@ -276,4 +276,4 @@ def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_count
     assert untrained["policy"] == str(checkpoint) and "close_steps" not in untrained
     assert untrained["success"] in (0.0, 1.0) and untrained["return"] >= 0.0
     if untrained["success"] == 0.0:
-        assert untrained["steps_to_lift"] is None and untrained["reach_step"] is None
+        assert untrained["steps_to_lift"] is None and untrained["first_close_step"] is None
