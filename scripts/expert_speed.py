@@ -23,6 +23,9 @@ from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.geometry import GRIPPER_CLOSED, gripper_class
 from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
 
+KNOBS = ("close_steps", "position_gain", "hover_height_m")  # the scripted expert's timing, settable here
+
+
 def first_close_step(frames: dict) -> int | None:
     """The first step whose action commands the gripper closed (None where none does)."""
     closing = np.array([gripper_class(g) == GRIPPER_CLOSED for g in frames[F.ACTION_KEY][:, -1]])
@@ -34,11 +37,11 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--policy", default=None, help="a pretrained_model folder to time instead of the expert")
     defaults = ScriptedLiftExpert()
-    for knob in ("close_steps", "position_gain", "hover_height_m"):
+    for knob in KNOBS:
         parser.add_argument(f"--{knob}", type=type(getattr(defaults, knob)), default=getattr(defaults, knob))
     args = parser.parse_args()
-    expert = PolicyExpert(args.policy) if args.policy else ScriptedLiftExpert(
-        close_steps=args.close_steps, position_gain=args.position_gain, hover_height_m=args.hover_height_m)
+    knobs = {k: getattr(args, k) for k in KNOBS}
+    expert = PolicyExpert(args.policy) if args.policy else ScriptedLiftExpert(**knobs)
     env, no_noise = LiftEnv(obs_type="agent_pos"), DemonstratorConfig(noise_std=0.0)
     episodes = []
     for i in range(args.episodes):
@@ -46,11 +49,11 @@ def main() -> None:
                                        ANALYSIS_SEED_OFFSET + i)
         episodes.append(stats | {"first_close_step": first_close_step(frames)})
     lifted = [e for e in episodes if e["success"]]
+
     def mean_step(key: str) -> float | None:  # over the lifted episodes
         return float(np.mean([e[key] for e in lifted])) if lifted else None
 
-    who = {"policy": args.policy} if args.policy else {k: getattr(args, k) for k in
-                                                        ("close_steps", "position_gain", "hover_height_m")}
+    who = {"policy": args.policy} if args.policy else knobs
     print(json.dumps(who | {"episodes": args.episodes, "success": float(np.mean([e["success"] for e in episodes])),
                             "first_close_step": mean_step("first_close_step"),
                             "steps_to_lift": mean_step("steps_to_lift"),

@@ -28,8 +28,8 @@ def pinned_versions() -> dict[str, str]:
 
 def direct_requirements() -> list[Requirement]:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    return [Requirement(r) for r in project["dependencies"] + project["optional-dependencies"]["test"]
-            + project["optional-dependencies"]["ray"]]
+    extras = [r for group in project["optional-dependencies"].values() for r in group]
+    return [Requirement(r) for r in project["dependencies"] + extras]
 
 
 def test_every_dependency_of_pyproject_is_pinned_inside_its_range():
