@@ -80,6 +80,27 @@ def test_agent_scores_the_raw_sample_it_drew_and_the_env_gets_its_projection(low
     assert policy.log_std.grad is not None and policy.model.value_head.weight.grad is not None
 
 
+def test_agent_takes_the_workers_noise_for_its_gaussian_part(lowdim_dataset_root):
+    """Given noise (colored, from the rollout workers), the sample is mean + std * noise on the position and
+    rotation and still scored by the policy's own log-prob."""
+    dataset = load_dataset(lowdim_dataset_root)
+    policy, preprocessor, _ = make_bcrl_policy(dataset)
+    agent = BCRLAgent(policy, preprocessor)
+    batch = preprocessor(whole_dataset_batch(dataset))
+    noise = torch.linspace(-2.0, 2.0, len(dataset) * agent.noise_dims).reshape(len(dataset), agent.noise_dims)
+    with torch.no_grad():
+        torch.manual_seed(0)
+        raw_actions, log_prob, _ = agent.sample(batch, noise)
+        torch.manual_seed(0)
+        white_actions, _, _ = agent.sample(batch)
+        continuous, _ = policy.action_distributions(policy.model(batch))
+        new_log_prob, _, _ = agent.evaluate(batch, raw_actions)
+    assert agent.noise_dims == 6
+    torch.testing.assert_close(raw_actions[:, :6], continuous.mean + policy.log_std.exp() * noise)
+    torch.testing.assert_close(new_log_prob, log_prob, rtol=1e-5, atol=1e-5 * float(log_prob.abs().max()))
+    assert not torch.allclose(raw_actions[:, :6], white_actions[:, :6])
+
+
 @pytest.mark.parametrize("fixture_name", ["lowdim_dataset_root", "image_dataset_root"])
 def test_separate_critic_keeps_the_value_loss_off_the_actor(fixture_name, request):
     dataset = load_dataset(request.getfixturevalue(fixture_name))

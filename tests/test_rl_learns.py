@@ -41,6 +41,8 @@ class ReachOrigin(gym.Env):
 
 
 class MLPAgent:
+    noise_dims = 1
+
     def __init__(self):
         torch.manual_seed(0)
         self.module = nn.ModuleDict({"actor": nn.Sequential(nn.Linear(1, 32), nn.Tanh(), nn.Linear(32, 1)),
@@ -59,9 +61,9 @@ class MLPAgent:
     def _dist(self, obs):
         return Normal(self.module["actor"](obs["obs"]), self.module.log_std.exp())
 
-    def sample(self, obs):
+    def sample(self, obs, noise=None):
         dist = self._dist(obs)
-        actions = dist.sample()
+        actions = dist.sample() if noise is None else dist.mean + dist.stddev * noise
         return actions, dist.log_prob(actions).sum(-1), self.value(obs)
 
     def to_env_action(self, actions):

@@ -21,12 +21,14 @@ from lerobot_bcrl.features import ENV_STATE_KEY
 
 class Agent(Protocol):
     module: nn.Module  # the parameters PPO optimises
+    noise_dims: int  # the action's Gaussian part: how many standard-normal draws `sample` takes as `noise`
 
     def state_dict(self) -> dict[str, Tensor]: ...  # what rollout workers receive: the weights
     def load_state_dict(self, state: dict[str, Tensor]) -> None: ...
 
     def observation_batch(self, raw_obs: dict[str, np.ndarray]) -> dict[str, Tensor]: ...
-    def sample(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]: ...  # actions, log_prob, value
+    # actions, log_prob, value; `noise` (N, noise_dims) drives the Gaussian part (mean + std * noise), None: i.i.d.
+    def sample(self, obs: dict[str, Tensor], noise: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]: ...
     def to_env_action(self, actions: Tensor) -> Tensor: ...  # what env.step gets (e.g. clamped)
     def mean_action(self, obs: dict[str, Tensor]) -> Tensor: ...  # deterministic, already an env action
     def value(self, obs: dict[str, Tensor]) -> Tensor: ...
@@ -65,6 +67,7 @@ class BCRLAgent:
         self.policy = policy
         self.module = policy
         self.preprocessor = preprocessor
+        self.noise_dims = policy.log_std.shape[0]
 
     @classmethod
     def from_pretrained(cls, pretrained_dir: str | Path) -> BCRLAgent:
@@ -104,10 +107,11 @@ class BCRLAgent:
     # PPO learns on the raw sample [delta_pos / scale, delta_rotvec / scale, gripper class]: its log-prob is exact.
     # The env gets its projection (clamped deltas, unit quaternion, -1/+1 gripper) from `to_env_action`; taking
     # log-probs at the projected point instead makes the ratio explode wherever the clamp is active.
-    def sample(self, obs):
+    def sample(self, obs, noise=None):
         outputs = self.policy.model(obs)
         continuous_dist, gripper_dist = self.policy.action_distributions(outputs)
-        raw_actions = torch.cat([continuous_dist.sample(), gripper_dist.sample()[:, None].float()], dim=-1)
+        continuous = continuous_dist.sample() if noise is None else continuous_dist.mean + continuous_dist.stddev * noise
+        raw_actions = torch.cat([continuous, gripper_dist.sample()[:, None].float()], dim=-1)
         log_prob, _ = self._log_prob_and_entropy(continuous_dist, gripper_dist, raw_actions)
         return raw_actions, log_prob, self._required_value(outputs.value)
 
@@ -133,7 +137,7 @@ class BCRLAgent:
         return log_prob, {"continuous": continuous_dist.entropy().sum(-1), "gripper": gripper_dist.entropy()}
 
     def to_env_action(self, raw_actions):
-        n = self.policy.log_std.shape[0]
+        n = self.noise_dims
         return self.policy.to_env_action(raw_actions[:, :n], raw_actions[:, n].long())
 
     def mean_action(self, obs):

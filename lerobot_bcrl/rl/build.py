@@ -57,6 +57,7 @@ def start_workers(cfg, policy, preprocessor, postprocessor, seed: int) -> Rollou
             "make_agent": partial(BCRLAgent.from_files, policy_files),
             "n_envs": cfg.rollout.envs_per_worker,
             "seed": seed + 7919 * i,
+            "noise_color_beta": cfg.rollout.noise_color_beta,
         }
         for i in range(max(cfg.rollout.n_workers, 1))
     ]

@@ -40,6 +40,10 @@ class RolloutConfig:
     # PPO's rollouts on robosuite's shaped reward (reaching, grasping, then 2.25 lifted) where the env's is sparse;
     # validation, the choice and the test keep the env's reward, so results stay comparable
     dense_reward: bool = False
+    # The exploration noise's color: its power spectrum ~ 1 / f^beta over an episode's steps, each step still N(0, 1)
+    # times the policy's std (rl/colored_noise.py). 0: PPO's i.i.d. white noise; 0.5: colored noise in PPO (Hollenstein
+    # et al., AAAI 2024); 1: pink noise. Only the sampled training actions change, never the deterministic policy.
+    noise_color_beta: float = 0.0
     timeout_s: float = WORKER_TIMEOUT_S  # a worker silent this long in a collect or evaluation is killed and replaced
     max_worker_failures: int = MAX_WORKER_FAILURES  # a worker failing this many calls in a row stops the run
 
@@ -50,6 +54,8 @@ class RolloutConfig:
             raise ValueError("--rollout.backend=ray runs the envs in actors: give --rollout.n_workers >= 1")
         if self.ray_address and self.backend != "ray":
             raise ValueError("--rollout.ray_address is for --rollout.backend=ray")
+        if self.noise_color_beta < 0:
+            raise ValueError(f"--rollout.noise_color_beta={self.noise_color_beta}: give 0 (white noise) or more")
 
     @property
     def n_envs(self) -> int:

@@ -24,6 +24,7 @@ import torch
 
 from lerobot_bcrl import rerun_log
 from lerobot_bcrl.rl.agent import Agent, flatten_observation
+from lerobot_bcrl.rl.colored_noise import ColoredNoiseStream
 
 logger = logging.getLogger(__name__)
 WORKER_TIMEOUT_S = 900.0  # a worker that has not answered a collect or evaluation in this long is killed and replaced
@@ -96,7 +97,8 @@ def derived_seed(*keys: int) -> int:
     return int(np.random.SeedSequence(keys).generate_state(1)[0] >> 1)
 
 
-EPISODE_SEEDS, ACTION_SEEDS = 0, 1  # the first key after the worker's seed: which stream a derived seed feeds
+EPISODE_SEEDS, ACTION_SEEDS, NOISE_SEEDS = 0, 1, 2  # the first key after the worker's seed: which stream it feeds
+NOISE_STEPS_WITHOUT_TIME_LIMIT = 1000  # colored noise's sequence length for an env with no `max_episode_steps`
 
 
 class RolloutWorker:
@@ -104,13 +106,17 @@ class RolloutWorker:
 
     Env i's n-th episode is seeded with `derived_seed(seed, EPISODE_SEEDS, i, n)`, the actions of the k-th `collect`
     come from torch's RNG seeded with `derived_seed(seed, ACTION_SEEDS, k)`: the same weights give the same
-    trajectories, and `reseed` puts a replacement worker where a dead one stood.
+    trajectories, and `reseed` puts a replacement worker where a dead one stood. With `noise_color_beta` > 0 the
+    Gaussian part of the actions is driven by colored noise instead (rl/colored_noise.py), one sequence per env and
+    episode from `derived_seed(seed, NOISE_SEEDS, i, n)`.
     """
 
     def __init__(self, make_env: Callable[[], gym.Env], make_agent: Callable[[], Agent], n_envs: int,
-                 seed: int, make_eval_env: Callable[[], gym.Env] | None = None):
+                 seed: int, make_eval_env: Callable[[], gym.Env] | None = None, noise_color_beta: float = 0.0):
         self.agent = make_agent()
         self.seed = seed
+        self.noise_color_beta = noise_color_beta
+        self.noise: list[ColoredNoiseStream | None] = [None] * n_envs
         self.envs = [make_env() for _ in range(n_envs)]
         self.make_eval_env = make_eval_env or make_env  # e.g. one that logs its episodes to rerun
         self.eval_env: gym.Env | None = None
@@ -131,7 +137,20 @@ class RolloutWorker:
     def _reset(self, env_index: int) -> tuple[dict[str, np.ndarray], EpisodeStats]:
         episode_seed = derived_seed(self.seed, EPISODE_SEEDS, env_index, self.episode_index[env_index])
         obs, _ = self.envs[env_index].reset(seed=episode_seed)
+        if self.noise_color_beta > 0:
+            env = self.envs[env_index]
+            horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else None
+            noise_seed = derived_seed(self.seed, NOISE_SEEDS, env_index, self.episode_index[env_index])
+            self.noise[env_index] = ColoredNoiseStream(self.noise_color_beta, self.agent.noise_dims,
+                                                       horizon or NOISE_STEPS_WITHOUT_TIME_LIMIT,
+                                                       np.random.default_rng(noise_seed))
         return flatten_observation(obs), EpisodeStats(0.0, 0, False, None, seed=episode_seed)
+
+    def _exploration_noise(self) -> torch.Tensor | None:
+        """This step's colored noise of every env (n_envs, noise_dims); None: the agent draws white noise."""
+        if self.noise_color_beta <= 0:
+            return None
+        return torch.from_numpy(np.stack([stream.next() for stream in self.noise]))
 
     def _load(self, state_dict: dict[str, torch.Tensor] | None) -> None:
         if state_dict is not None:
@@ -165,7 +184,7 @@ class RolloutWorker:
         start = time.perf_counter()
         for t in range(steps_per_env):
             raw_obs = stack_observations(self.observations)
-            actions, log_probs, values = self.agent.sample(self.agent.observation_batch(raw_obs))
+            actions, log_probs, values = self.agent.sample(self.agent.observation_batch(raw_obs), self._exploration_noise())
             obs_steps.append(raw_obs)
             action_steps.append(actions.numpy())
             log_prob_steps.append(log_probs.numpy())
