@@ -38,9 +38,11 @@ def test_powerlaw_noise_is_unit_normal_at_every_step_and_correlated_as_beta_asks
     assert 0.2 < lag_one[0.5] < lag_one[1.0] < lag_one[2.0], lag_one  # redder: neighbours agree more
 
 
-def colored_workers(beta: float, seed: int = 7) -> InlineWorkers:
+def colored_workers(beta: float | None, seed: int = 7) -> InlineWorkers:
+    """Two ReachOrigin envs with `noise_color_beta=beta` (None: the workers' default)."""
+    color = {} if beta is None else {"noise_color_beta": beta}
     return InlineWorkers([{"make_env": lambda: gym.make("ReachOriginTimeLimit-v0"), "make_agent": MLPAgent,
-                           "n_envs": 2, "seed": seed, "noise_color_beta": beta}])
+                           "n_envs": 2, "seed": seed, **color}])
 
 
 def test_workers_drive_the_gaussian_with_one_colored_sequence_per_env_and_episode():
@@ -69,8 +71,7 @@ def test_workers_drive_the_gaussian_with_one_colored_sequence_per_env_and_episod
 
 def test_white_noise_is_the_default_and_a_negative_beta_is_refused():
     state = MLPAgent().module.state_dict()
-    default = InlineWorkers([{"make_env": lambda: gym.make("ReachOriginTimeLimit-v0"), "make_agent": MLPAgent,
-                              "n_envs": 2, "seed": 7}]).collect(state, 30)
+    default = colored_workers(beta=None).collect(state, 30)
     np.testing.assert_array_equal(default.actions, colored_workers(beta=0.0).collect(state, 30).actions)
     assert not np.array_equal(default.actions, colored_workers(beta=0.5).collect(state, 30).actions)
     with pytest.raises(ValueError, match="noise_color_beta"):

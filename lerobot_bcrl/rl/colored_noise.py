@@ -39,11 +39,11 @@ class ColoredNoiseStream:
     out (make one per episode with `n_steps` its horizon, and an episode's noise is one sequence)."""
 
     def __init__(self, beta: float, n_dims: int, n_steps: int, rng: np.random.Generator):
-        self.beta, self.n_dims, self.n_steps, self.rng = beta, n_dims, n_steps, rng
-        self.sequence, self.position = np.zeros((0, n_dims), np.float32), 0
+        self.draw = lambda: powerlaw_noise(beta, n_steps, n_dims, rng)
+        self.sequence, self.position = self.draw(), 0
 
     def next(self) -> np.ndarray:
         if self.position == len(self.sequence):
-            self.sequence, self.position = powerlaw_noise(self.beta, self.n_steps, self.n_dims, self.rng), 0
+            self.sequence, self.position = self.draw(), 0
         self.position += 1
         return self.sequence[self.position - 1]

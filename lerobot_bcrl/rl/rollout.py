@@ -138,11 +138,10 @@ class RolloutWorker:
         episode_seed = derived_seed(self.seed, EPISODE_SEEDS, env_index, self.episode_index[env_index])
         obs, _ = self.envs[env_index].reset(seed=episode_seed)
         if self.noise_color_beta > 0:
-            env = self.envs[env_index]
-            horizon = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else None
+            spec = self.envs[env_index].spec
+            horizon = (spec and spec.max_episode_steps) or NOISE_STEPS_WITHOUT_TIME_LIMIT
             noise_seed = derived_seed(self.seed, NOISE_SEEDS, env_index, self.episode_index[env_index])
-            self.noise[env_index] = ColoredNoiseStream(self.noise_color_beta, self.agent.noise_dims,
-                                                       horizon or NOISE_STEPS_WITHOUT_TIME_LIMIT,
+            self.noise[env_index] = ColoredNoiseStream(self.noise_color_beta, self.agent.noise_dims, horizon,
                                                        np.random.default_rng(noise_seed))
         return flatten_observation(obs), EpisodeStats(0.0, 0, False, None, seed=episode_seed)
 
@@ -184,7 +183,8 @@ class RolloutWorker:
         start = time.perf_counter()
         for t in range(steps_per_env):
             raw_obs = stack_observations(self.observations)
-            actions, log_probs, values = self.agent.sample(self.agent.observation_batch(raw_obs), self._exploration_noise())
+            obs_batch = self.agent.observation_batch(raw_obs)
+            actions, log_probs, values = self.agent.sample(obs_batch, self._exploration_noise())
             obs_steps.append(raw_obs)
             action_steps.append(actions.numpy())
             log_prob_steps.append(log_probs.numpy())
