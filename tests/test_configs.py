@@ -76,11 +76,12 @@ def test_scratch_configs_have_no_bc_term(mode, obs_type):
     assert cfg.schedule.type == "constant" and cfg.schedule.constant_theta == 0.0
 
 
-def test_the_recipe_config_chooses_its_result_on_validation_and_decays_theta_to_zero():
+def test_the_recipe_config_chooses_on_validation_decays_theta_to_zero_and_colors_its_noise():
     cfg = parse(FinetuneConfig, CONFIGS / "bcrl_lift_lowdim_best_validation.json")
     assert cfg.select == "best_validation" and cfg.schedule.theta_min == 0.0
     assert cfg.ppo.term_weighting == "gradient_share" and cfg.final_eval_episodes >= 50
     assert cfg.eval_episodes >= 20
+    assert cfg.rollout.noise_color_beta > 0  # white noise only where a command says --rollout.noise_color_beta=0
 
 
 @pytest.mark.parametrize("sigma", SIGMAS)

@@ -43,8 +43,8 @@ class RolloutConfig:
     # The exploration noise's color: its power spectrum ~ 1 / f^beta over an episode's steps, each step still N(0, 1)
     # times the policy's std (rl/colored_noise.py). 0: PPO's i.i.d. white noise; 0.5: colored noise in PPO (Hollenstein
     # et al., AAAI 2024); 1: pink noise. Only the sampled training actions change, never the deterministic policy.
-    # 0.5 against 0 on the weak expert, the operator mix and the near-optimal sets: docs/RESULTS.md, "Colored
-    # exploration noise".
+    # The recipe's config sets 0.5; 0.5 against 0 on the weak expert, the operator mix and the near-optimal sets:
+    # docs/RESULTS.md, "Colored exploration noise".
     noise_color_beta: float = 0.0
     timeout_s: float = WORKER_TIMEOUT_S  # a worker silent this long in a collect or evaluation is killed and replaced
     max_worker_failures: int = MAX_WORKER_FAILURES  # a worker failing this many calls in a row stops the run
