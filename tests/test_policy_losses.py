@@ -10,7 +10,8 @@ import torch
 
 from lerobot_bcrl import geometry
 from lerobot_bcrl.policies.bcrl import losses
-from lerobot_bcrl.policies.bcrl.modeling_bcrl import SpatialSoftmax, quat_from_rotvec, rotvec_from_quat
+from lerobot_bcrl.policies.bcrl.modeling_bcrl import (CPU_CHUNK_FRAMES, KeypointEncoder, SpatialSoftmax, quat_from_rotvec,
+                                                    rotvec_from_quat)
 
 
 def test_rotation_vectors_of_quaternions_match_the_numpy_geometry_and_invert():
@@ -73,3 +74,27 @@ def test_spatial_softmax_finds_one_bright_spot(row, col):
     expected_x = -1 + 2 * col / (width - 1)
     expected_y = -1 + 2 * row / (height - 1)
     assert keypoint.tolist() == pytest.approx([expected_x, expected_y], abs=1e-4)
+
+
+def test_keypoint_encoder_in_cpu_chunks_gives_the_one_batch_keypoints_and_gradients():
+    torch.manual_seed(0)
+    encoder = KeypointEncoder(3, (8, 8, 8), 4)
+    images = torch.rand(CPU_CHUNK_FRAMES * 2 + 3, 3, 32, 32)  # two full chunks and a short one
+    weights = torch.randn(len(images), 8)
+
+    def keypoints_and_gradients(forward):
+        encoder.zero_grad()
+        keypoints = forward(images)
+        (keypoints * weights).sum().backward()
+        return keypoints.detach(), [p.grad.clone() for p in encoder.parameters()]
+
+    one_batch, one_batch_grads = keypoints_and_gradients(encoder._keypoints)
+    chunked, chunked_grads = keypoints_and_gradients(encoder)
+    torch.testing.assert_close(chunked, one_batch, rtol=1e-5, atol=1e-6)
+    with torch.no_grad():
+        torch.testing.assert_close(encoder(images), one_batch, rtol=1e-5, atol=1e-6)
+    # The last conv's bias has no gradient in exact arithmetic (the spatial softmax is shift-invariant per map):
+    # compare every other parameter, each relative to its size.
+    for (name, _), grad, expected in zip(encoder.named_parameters(), chunked_grads, one_batch_grads):
+        if name != f"cnn.{len(encoder.cnn) - 1}.bias":
+            assert float((grad - expected).norm()) <= 1e-4 * float(expected.norm()), name

@@ -79,6 +79,9 @@ class MLPAgent:
         dist = self._dist(obs)
         return dist.log_prob(actions).sum(-1), {"action": dist.entropy().sum(-1)}, self.value(obs)
 
+    def term_norm_parameters(self):
+        return list(self.module.parameters())
+
 
 def make_workers(seed: int) -> InlineWorkers:
     return InlineWorkers([{"make_env": ReachOrigin, "make_agent": MLPAgent, "n_envs": 4, "seed": seed}])

@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from policy_fixtures import load_dataset, lowdim_dataset_root, make_bcrl_policy, whole_dataset_batch  # noqa: F401
+from policy_fixtures import (  # noqa: F401  (fixtures)
+    image_dataset_root,
+    load_dataset,
+    lowdim_dataset_root,
+    make_bcrl_policy,
+    whole_dataset_batch,
+)
 
 from lerobot_bcrl.rl.normalization import RewardScaler
 from lerobot_bcrl.rl.ppo import PPOConfig, bcrl_loss, compute_gae, ppo_loss_terms
@@ -182,6 +188,26 @@ def test_gradient_share_weighting_makes_theta_the_bc_share(lowdim_dataset_root):
     assert "bc_scale" not in pure_ppo
     with pytest.raises(ValueError, match="term_weighting"):
         PPOConfig(term_weighting="share")
+
+
+def test_gradient_share_of_an_image_policy_weighs_the_layers_after_its_cnn(image_dataset_root, lowdim_dataset_root):
+    """The term norms skip the image encoder (no backward pass through the CNN to measure them), the share is still
+    theta on the other layers, and both terms still train the CNN; a low-dim policy's norms cover every parameter."""
+    policy, agent, demo_batch, minibatch = bcrl_policy_with_batches(image_dataset_root)
+    encoder_ids = {id(p) for p in policy.model.keypoint_encoder.parameters()}
+    normed = agent.term_norm_parameters()
+    assert encoder_ids and not encoder_ids & {id(p) for p in normed}
+    assert len(normed) + len(encoder_ids) == len([p for p in policy.parameters() if p.requires_grad])
+    policy.zero_grad()
+    loss, metrics = bcrl_loss(agent, minibatch, demo_batch, theta=0.25, cfg=PPOConfig(term_weighting="gradient_share"),
+                              bc_forward=policy.forward, measure_gradients=True)
+    assert metrics["bc_grad_share"] == pytest.approx(0.25, rel=1e-4)
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.model.keypoint_encoder.cnn.parameters()
+               if p.dim() > 1)  # every conv's weights learn
+
+    lowdim_policy, lowdim_agent, _, _ = bcrl_policy_with_batches(lowdim_dataset_root)
+    assert [id(p) for p in lowdim_agent.term_norm_parameters()] == [id(p) for p in lowdim_policy.parameters()]
 
 
 def test_gripper_entropy_bonus_adds_its_own_gradient_and_leaves_the_log_std_alone(lowdim_dataset_root):

@@ -34,6 +34,8 @@ class Agent(Protocol):
     def value(self, obs: dict[str, Tensor]) -> Tensor: ...
     # log_prob, entropy per action part ({"action": ...}, or e.g. {"continuous": ..., "gripper": ...}), value
     def evaluate(self, obs: dict[str, Tensor], actions: Tensor) -> tuple[Tensor, dict[str, Tensor], Tensor]: ...
+    # The parameters whose gradient norms PPO's `gradient_share` weighting and its logged term norms compare.
+    def term_norm_parameters(self) -> list[nn.Parameter]: ...
 
 
 def flatten_observation(obs) -> dict[str, np.ndarray]:
@@ -142,6 +144,13 @@ class BCRLAgent:
 
     def mean_action(self, obs):
         return self.policy.select_action(obs)
+
+    def term_norm_parameters(self) -> list[nn.Parameter]:
+        """All but the image encoder's: the norms then take backward passes through the layers after it only, not
+        two more through the CNN per minibatch (docs/RESULTS.md, image BC+RL's time). A low-dim policy has none."""
+        encoder = self.policy.model.keypoint_encoder
+        skipped = set() if encoder is None else {id(p) for p in encoder.parameters()}
+        return [p for p in self.policy.parameters() if p.requires_grad and id(p) not in skipped]
 
     def value(self, obs):
         return self._required_value(self.policy.model(obs).value)

@@ -57,8 +57,9 @@ class PPOConfig:
     # delta_rotvec / scale].
     reset_log_std: float = -1.5
     # How theta_t weighs the two terms. "loss": the paper's `theta * L_BC + (1 - theta) * L_PPO`. "gradient_share":
-    # L_BC is first rescaled per minibatch by ||grad L_PPO|| / ||grad L_BC|| (policy term, detached), so theta_t is
-    # the BC term's share of the policy gradient (PPO's was 2-9x the BC loss's here: docs/RESULTS.md).
+    # L_BC is first rescaled per minibatch by ||grad L_PPO|| / ||grad L_BC|| (policy term, detached; over the
+    # agent's `term_norm_parameters`: an image policy's layers after its CNN), so theta_t is the BC term's share of
+    # the policy gradient (PPO's was 2-9x the BC loss's here: docs/RESULTS.md).
     term_weighting: str = "loss"
 
     def __post_init__(self):
@@ -107,27 +108,26 @@ def explained_variance(predicted: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if target_var == 0 else float(1 - np.var(target - predicted) / target_var)
 
 
-def gradient_norm(module: torch.nn.Module, term: Tensor) -> float:
-    """||d term / d parameters||, without touching `.grad` (the graph is kept for the real backward pass)."""
+def gradient_norm(params: list[torch.nn.Parameter], term: Tensor) -> float:
+    """||d term / d params||, without touching `.grad` (the graph is kept for the real backward pass)."""
     if not term.requires_grad:
         return 0.0
-    params = [p for p in module.parameters() if p.requires_grad]
     grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
     squares = [g.detach().pow(2).sum() for g in grads if g is not None]
     return float(torch.stack(squares).sum().sqrt()) if squares else 0.0
 
 
-def term_gradient_norms(module: torch.nn.Module, bc_term: Tensor, ppo_term: Tensor) -> dict[str, float]:
+def term_gradient_norms(params: list[torch.nn.Parameter], bc_term: Tensor, ppo_term: Tensor) -> dict[str, float]:
     """Gradient norms of the weighted BC and PPO policy terms and the BC term's share of their sum: how much
     theta_t weighs once each term's gradient scale counts (logged once per iteration)."""
-    bc_norm, ppo_norm = gradient_norm(module, bc_term), gradient_norm(module, ppo_term)
+    bc_norm, ppo_norm = gradient_norm(params, bc_term), gradient_norm(params, ppo_term)
     share = bc_norm / (bc_norm + ppo_norm) if bc_norm + ppo_norm > 0 else float("nan")
     return {"bc_term_grad_norm": bc_norm, "ppo_term_grad_norm": ppo_norm, "bc_grad_share": share}
 
 
-def bc_gradient_scale(module: torch.nn.Module, bc_loss: Tensor, ppo_loss: Tensor) -> float:
+def bc_gradient_scale(params: list[torch.nn.Parameter], bc_loss: Tensor, ppo_loss: Tensor) -> float:
     """`||grad L_PPO|| / ||grad L_BC||` (1 when either is zero): gives L_BC the PPO policy term's gradient scale."""
-    bc_norm, ppo_norm = gradient_norm(module, bc_loss), gradient_norm(module, ppo_loss)
+    bc_norm, ppo_norm = gradient_norm(params, bc_loss), gradient_norm(params, ppo_loss)
     return ppo_norm / bc_norm if bc_norm > 0 and ppo_norm > 0 else 1.0
 
 
@@ -150,11 +150,11 @@ def bcrl_loss(agent: Agent, minibatch: dict, demo_batch: dict | None, theta: flo
     bc_start = time.perf_counter()
     bc_loss, metrics = bc_forward(demo_batch) if theta > 0 else (torch.zeros(()), {})
     if cfg.term_weighting == "gradient_share" and theta > 0:
-        metrics["bc_scale"] = bc_gradient_scale(agent.module, bc_loss, ppo_loss)
+        metrics["bc_scale"] = bc_gradient_scale(agent.term_norm_parameters(), bc_loss, ppo_loss)
         bc_loss = metrics["bc_scale"] * bc_loss
     bc_term_s = time.perf_counter() - bc_start  # the BC forward pass and the gradient-share norms (not its backward)
     if measure_gradients:
-        metrics.update(term_gradient_norms(agent.module, theta * bc_loss, (1 - theta) * ppo_loss))
+        metrics.update(term_gradient_norms(agent.term_norm_parameters(), theta * bc_loss, (1 - theta) * ppo_loss))
 
     # The value loss stands outside (1 - theta): the critic learns from the first update, so PPO does not start on
     # an untrained one (the paper's form weighs it with the policy term: docs/bcrl_finetune.md).

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 from torch.distributions import Categorical, Normal
+from torch.utils.checkpoint import checkpoint
 
 from lerobot_bcrl.features import (
     ACTION_KEY,
@@ -32,6 +33,9 @@ from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 
 GRIPPER_OPEN_CLASS, GRIPPER_CLOSED_CLASS = 0, 1
 CONTINUOUS_DIM = 6  # [delta_pos / scale (3), delta_rotvec / scale (3)]: what the Gaussian is over
+# A CPU's batches of 128x128 frames above this many run through the CNN in chunks: at 256 a frame's forward and
+# backward took about twice as long as in chunks of 64, at 64 chunking gained nothing (one core).
+CPU_CHUNK_FRAMES = 64
 
 
 class SpatialSoftmax(nn.Module):
@@ -75,6 +79,17 @@ class KeypointEncoder(nn.Module):
         self.spatial_softmax = SpatialSoftmax()
 
     def forward(self, image: Tensor) -> Tensor:
+        """(B, C, H, W) -> (B, 2K). On the CPU a batch above CPU_CHUNK_FRAMES frames runs through the CNN that many
+        at a time, each chunk recomputed in the backward pass (activation checkpointing): the same keypoints and
+        gradients, but a chunk's activations stay in the CPU's caches (docs/RESULTS.md, image BC+RL's time)."""
+        if image.device.type != "cpu" or len(image) <= CPU_CHUNK_FRAMES:
+            return self._keypoints(image)
+        chunks = image.split(CPU_CHUNK_FRAMES)
+        if not torch.is_grad_enabled():
+            return torch.cat([self._keypoints(chunk) for chunk in chunks])
+        return torch.cat([checkpoint(self._keypoints, chunk, use_reentrant=False) for chunk in chunks])
+
+    def _keypoints(self, image: Tensor) -> Tensor:
         return self.spatial_softmax(self.cnn(image)).flatten(1)
 
 
