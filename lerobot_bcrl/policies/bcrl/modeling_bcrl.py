@@ -34,7 +34,7 @@ from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
 GRIPPER_OPEN_CLASS, GRIPPER_CLOSED_CLASS = 0, 1
 CONTINUOUS_DIM = 6  # [delta_pos / scale (3), delta_rotvec / scale (3)]: what the Gaussian is over
 # A CPU's batches of 128x128 frames above this many run through the CNN in chunks: at 256 a frame's forward and
-# backward took about twice as long as in chunks of 64, at 64 chunking gained nothing (one core).
+# backward took 1.4-1.5x as long as in chunks of 64; at 64, chunks of 32 gained nothing (bench/learner_throughput.py).
 CPU_CHUNK_FRAMES = 64
 
 
