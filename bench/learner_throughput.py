@@ -7,7 +7,7 @@ Prints one JSON line per variant, each measured on the same batches in the same 
 - `bcrl`: what bcrl-finetune runs: batches above `CPU_CHUNK_FRAMES` through the CNN in checkpointed chunks, the term
   norms over the layers after the CNN (`BCRLAgent.term_norm_parameters`).
 Then one line per batch size for the image encoder alone (forward and backward of a batch of random frames), as one
-batch and in checkpointed chunks of 32 and 64: what chose `CPU_CHUNK_FRAMES`.
+batch and in checkpointed chunks smaller than the batch (32, 64): what chose `CPU_CHUNK_FRAMES`.
 Example: python bench/learner_throughput.py --root=outputs/results/bench_img --steps=5
 """
 
@@ -17,6 +17,8 @@ import time
 from unittest import mock
 
 import torch
+
+from lerobot_bcrl.policies.bcrl import modeling_bcrl
 
 
 def main() -> None:
@@ -29,7 +31,6 @@ def main() -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    from lerobot_bcrl.policies.bcrl import modeling_bcrl
     from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
     from lerobot_bcrl.rl.agent import BCRLAgent
     from lerobot_bcrl.rl.demo_buffer import DemoBuffer
@@ -86,20 +87,16 @@ def main() -> None:
             "ms_per_ppo_sample": 1000 * seconds / args.minibatch_size,  # its demo sample included
             "speedup_over_baseline": baseline_s / seconds,
         }), flush=True)
-
-
     for batch_size in (64, 256):
         print(json.dumps(encoder_ms_per_frame(policy.model.keypoint_encoder, batch_size, args.steps)), flush=True)
 
 
 def encoder_ms_per_frame(encoder, batch_size: int, repeats: int) -> dict:
-    """Milliseconds per frame of the encoder's forward and backward, one batch against chunks (its `CPU_CHUNK_FRAMES`
-    path with the chunk size patched)."""
-    from lerobot_bcrl.policies.bcrl import modeling_bcrl
-
+    """Milliseconds per frame of the encoder's forward and backward, one batch against chunks smaller than the batch
+    (its `CPU_CHUNK_FRAMES` path with the chunk size patched)."""
     images = torch.rand(batch_size, 3, 128, 128)
     result = {"variant": "encoder_forward_backward", "batch_size": batch_size, "torch_threads": torch.get_num_threads()}
-    for name, chunk in (("one_batch", 10**9), ("chunks_of_32", 32), ("chunks_of_64", 64)):
+    for name, chunk in [("one_batch", 10**9)] + [(f"chunks_of_{n}", n) for n in (32, 64) if n < batch_size]:
         with mock.patch.object(modeling_bcrl, "CPU_CHUNK_FRAMES", chunk):
             encoder(images).sum().backward()  # warm, outside the timing
             start = time.perf_counter()
