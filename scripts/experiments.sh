@@ -19,14 +19,16 @@ if [ "$MODE" = lowdim ]; then
   # 102,400 env steps (the config's); at sigma 0.1 the validation return was still rising there, and the runs
   # measured in docs/RESULTS.md went on to 204,800.
   DEFAULT_RL_STEPS=$([ "$SIGMA" = 0.1 ] && echo 204800 || echo 102400)
+  DEFAULT_EPISODES=100; DEFAULT_BC_STEPS=3000
 else
   RECORD_CONFIG=configs/record_sigma${SIGMA}.yaml
   BCRL_CONFIG=${BCRL_CONFIG:-configs/bcrl_lift_images.json}
   DEFAULT_RL_STEPS=297600
+  DEFAULT_EPISODES=50; DEFAULT_BC_STEPS=20000  # the record config's and configs/bc_lift_images.json's
 fi
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
-EPISODES=${EPISODES:-100}                 # demonstrations
-BC_STEPS=${BC_STEPS:-3000}                # lerobot-train steps
+EPISODES=${EPISODES:-$DEFAULT_EPISODES}    # demonstrations
+BC_STEPS=${BC_STEPS:-$DEFAULT_BC_STEPS}    # lerobot-train steps
 BC_ARGS=${BC_ARGS:-}                      # extra lerobot-train flags, e.g. "--seed=2"
 RL_STEPS=${RL_STEPS:-$DEFAULT_RL_STEPS}   # env steps of BC+RL
 SCRATCH_STEPS=${SCRATCH_STEPS:-297600}    # env steps of PPO from scratch (0: skip it)
