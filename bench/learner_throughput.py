@@ -5,7 +5,8 @@ Prints one JSON line per variant, each measured on the same batches in the same 
 - `baseline`: the whole batch through the CNN at once, the two term norms over every parameter (two more backward
   passes through the CNN per minibatch);
 - `bcrl`: what bcrl-finetune runs: batches above `CPU_CHUNK_FRAMES` through the CNN in checkpointed chunks, the term
-  norms over the layers after the CNN (`BCRLAgent.term_norm_parameters`).
+  norms over the layers after the CNN (`BCRLAgent.term_norm_parameters`);
+- `bcrl` again with `--threads` torch threads (bcrl-finetune's `--learner_threads`), when more than 1.
 Then one line per batch size for the image encoder alone (forward and backward of a batch of random frames), as one
 batch and in checkpointed chunks smaller than the batch (32, 64): what chose `CPU_CHUNK_FRAMES`.
 Example: python bench/learner_throughput.py --root=outputs/results/bench_img --steps=5
@@ -26,6 +27,7 @@ def main() -> None:
     parser.add_argument("--root", required=True, help="a bcrl-record dataset with a camera")
     parser.add_argument("--minibatch_size", type=int, default=256, help="PPO minibatch and demo batch, as the config")
     parser.add_argument("--steps", type=int, default=5, help="timed learner steps per variant (after one untimed)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of a last `bcrl` variant (if > 1)")
     args = parser.parse_args()
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -76,13 +78,17 @@ def main() -> None:
     with mock.patch.object(modeling_bcrl, "CPU_CHUNK_FRAMES", 10**9), \
             mock.patch.object(agent, "term_norm_parameters", lambda: every_parameter):
         baseline_s = seconds_per_step()
-    bcrl_s = seconds_per_step()
-    for variant, seconds in (("baseline", baseline_s), ("bcrl", bcrl_s)):
+    variants = [("baseline", 1, baseline_s), ("bcrl", 1, seconds_per_step())]
+    if args.threads > 1:
+        torch.set_num_threads(args.threads)
+        variants.append(("bcrl", args.threads, seconds_per_step()))
+        torch.set_num_threads(1)
+    for variant, threads, seconds in variants:
         print(json.dumps({
             "variant": variant,
             "minibatch_size": args.minibatch_size,
             "image_shape": list(cfg.image_features[cfg.image_key].shape),
-            "torch_threads": torch.get_num_threads(),
+            "torch_threads": threads,
             "learner_step_s": seconds,
             "ms_per_ppo_sample": 1000 * seconds / args.minibatch_size,  # its demo sample included
             "speedup_over_baseline": baseline_s / seconds,

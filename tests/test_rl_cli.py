@@ -243,3 +243,47 @@ def test_best_validation_selection_needs_periodic_evaluations(tmp_path):
     with pytest.raises(ValueError, match="choose one of"):
         finetune(FinetuneConfig(policy=BCRLConfig(), select="best", output_dir=tmp_path / "run"))
     assert not (tmp_path / "run").exists()  # refused before anything was written
+
+
+def test_learner_threads_hold_for_the_update_only(lowdim_dataset_root, tmp_path, monkeypatch):
+    """--learner_threads=2: the update runs on two torch threads, the collect (an in-process worker here) on one."""
+    import torch
+
+    from lerobot_bcrl.envs.configuration_lift import LiftEnvConfig
+    from lerobot_bcrl.policies.bcrl.configuration_bcrl import BCRLConfig
+    from lerobot_bcrl.rl import ppo
+    from lerobot_bcrl.rl.configuration import DemoDatasetConfig, FinetuneConfig, RolloutConfig
+
+    threads_seen = {"collect": [], "update": []}
+    real_update, real_start = ppo.ppo_update, ppo.start_workers
+
+    def update(*args, **kwargs):
+        threads_seen["update"].append(torch.get_num_threads())
+        return real_update(*args, **kwargs)
+
+    def start_workers(*args, **kwargs):
+        workers = real_start(*args, **kwargs)
+        collect = workers.collect
+
+        def counted_collect(*a, **k):
+            threads_seen["collect"].append(torch.get_num_threads())
+            return collect(*a, **k)
+
+        monkeypatch.setattr(workers, "collect", counted_collect)
+        return workers
+
+    monkeypatch.setattr(ppo, "ppo_update", update)
+    monkeypatch.setattr(ppo, "start_workers", start_workers)
+    cfg = FinetuneConfig(
+        policy=BCRLConfig(push_to_hub=False), env=LiftEnvConfig(obs_type="agent_pos", episode_length=40),
+        dataset=DemoDatasetConfig(repo_id=f"local/{lowdim_dataset_root.name}", root=str(lowdim_dataset_root)),
+        rollout=RolloutConfig(n_workers=0, envs_per_worker=2, steps_per_env=32), total_env_steps=128,
+        bc_batch_size=32, save_freq=128, eval_freq=0, final_eval_episodes=1, tensorboard=False,
+        learner_threads=2, output_dir=tmp_path / "run")
+    cfg.ppo.minibatch_size = 32
+    ppo.finetune(cfg)
+    assert threads_seen == {"collect": [1, 1], "update": [2, 2]}
+
+    with pytest.raises(ValueError, match="--learner_threads=0"):
+        ppo.finetune(FinetuneConfig(policy=BCRLConfig(), learner_threads=0, output_dir=tmp_path / "refused"))
+    assert not (tmp_path / "refused").exists()

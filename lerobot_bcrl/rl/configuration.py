@@ -79,6 +79,10 @@ class FinetuneConfig:
     rollout: RolloutConfig = field(default_factory=RolloutConfig)
     total_env_steps: int = 300_000  # 0: no training, only the final evaluation (the "BC only" baseline)
     bc_batch_size: int = 256  # demo minibatch size for the BC term
+    # Torch threads of the learner's update, while the rollout workers wait for its weights (each worker process is
+    # single-threaded; collect and update take turns). 1 keeps a run's bits the same on any number of cores; an image
+    # run on a CPU leaves the other cores idle during its update, where the CNN's backward pass is most of its time.
+    learner_threads: int = 1
     output_dir: Path | None = None
     resume: bool = False
     seed: int = 1000
@@ -124,6 +128,8 @@ class FinetuneConfig:
             raise ValueError("--select=best_validation chooses among the periodic evaluations: give --eval_freq > 0")
         if self.reselect_episodes and self.select != "best_validation":
             raise ValueError("--reselect_episodes evaluates the candidates of --select=best_validation again: give both")
+        if self.learner_threads < 1:
+            raise ValueError(f"--learner_threads={self.learner_threads}: give 1 or more")
         if self.rollout.dense_reward and "dense_reward" not in self.env.gym_kwargs:
             raise ValueError(f"--rollout.dense_reward=true: env {self.env.type!r} has no dense reward to train on")
         checkpoints = self.output_dir / "checkpoints"

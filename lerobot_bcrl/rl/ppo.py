@@ -337,8 +337,10 @@ def finetune(cfg) -> dict:
             env_steps += cfg.rollout.steps_per_iteration
             learn_start = time.time()
             rewards = reward_scaler(trajectories.rewards, trajectories.dones) if reward_scaler else trajectories.rewards
+            torch.set_num_threads(cfg.learner_threads)  # the workers wait for the new weights meanwhile
             metrics = ppo_update(agent, optimizer, trajectories, rewards, cfg.ppo, cfg.schedule, schedule,
                                  demo_batches, policy.forward)
+            torch.set_num_threads(1)  # an in-process worker (n_workers=0) steps its envs in this process
             train = summarize_episodes(trajectories.episodes, "train")
             last_train = train or last_train  # the progress bar shows the last finished episodes
             row = {"env_steps": env_steps, "ppo_iteration": schedule.ppo_iteration, "optim_step": schedule.optim_step,
