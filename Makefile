@@ -35,7 +35,7 @@ bench: setup
 	OMP_NUM_THREADS=1 $(PY) bench/rollout_throughput.py
 	OMP_NUM_THREADS=1 $(PY) bench/rollout_throughput.py --ray_cluster
 	OMP_NUM_THREADS=1 $(PY) bench/worker_memory.py
-	@echo "BC and image BC+RL learner throughput need a camera dataset: $(PY) bench/bc_throughput.py --root=<bcrl-record dataset>, OMP_NUM_THREADS=1 $(PY) bench/learner_throughput.py --root=<the same>; conversion: $(PY) bench/convert_speed.py"
+	@echo "BC and image BC+RL learner throughput need a camera dataset: $(PY) bench/bc_throughput.py --root=<bcrl-record dataset>, OMP_NUM_THREADS=1 $(PY) bench/learner_throughput.py --root=<the same> --threads=2; conversion: $(PY) bench/convert_speed.py"
 
 clean:
 	rm -rf outputs .pytest_cache
