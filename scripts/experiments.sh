@@ -27,7 +27,8 @@ else
   DEFAULT_RL_STEPS=297600
   DEFAULT_EPISODES=50; DEFAULT_BC_STEPS=20000  # the record config's and configs/bc_lift_images.json's
   # the asymmetric critic (the simulator's state; the actor still acts on pixels): from the same image BC it ended
-  # at 182.2 where the critic on the image keypoints fell to 92.0, one run each (docs/RESULTS.md, "Image BC+RL on the CPU")
+  # at 182.2 where the critic on the image keypoints fell to 92.0, one run each (docs/RESULTS.md, "Image BC+RL on
+  # the CPU")
   CRITIC_ARGS="--policy.critic_observation=privileged"
 fi
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
