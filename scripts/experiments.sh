@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The paper's experiments for one sigma, low-dim (CPU) or images (GPU): record demonstrations, BC with
 # lerobot-train, then "BC only", BC+RL and PPO from scratch with bcrl-finetune (each ends with a deterministic
-# evaluation on the same held-out test seeds), and the report (tables, plots). Every choice comes from configs/;
-# this script only chains the commands and sets sizes.
+# evaluation on the same held-out test seeds), and the report (tables, plots). Every choice comes from configs/ but
+# the image BC+RL's critic, a policy field that bcrl-finetune takes from the BC checkpoint and --policy.* flags
+# only; otherwise this script only chains the commands and sets sizes.
 #   SIGMA=0.01 bash scripts/experiments.sh            # or: make experiments SIGMA=0.01
 # Another training seed on the same demonstrations: BC_NAME=bc_seed2 BC_ARGS="--seed=2" (BC) and/or
 # BCRL_NAME=bcrl_seed2 BCRL_ARGS="--seed=2" (PPO); the report puts the runs of one cell (every $OUT/bcrl*) together.
@@ -26,9 +27,8 @@ else
   BCRL_CONFIG=${BCRL_CONFIG:-configs/bcrl_lift_images.json}
   DEFAULT_RL_STEPS=297600
   DEFAULT_EPISODES=50; DEFAULT_BC_STEPS=20000  # the record config's and configs/bc_lift_images.json's
-  # the asymmetric critic (the simulator's state; the actor still acts on pixels): from the same image BC it ended
-  # at 182.2 where the critic on the image keypoints fell to 92.0, one run each (docs/RESULTS.md, "Image BC+RL on
-  # the CPU")
+  # the asymmetric critic (the simulator's state; the actor still acts on pixels): docs/RESULTS.md, "Image BC+RL on
+  # the CPU", compares it with the critic on the image keypoints
   CRITIC_ARGS="--policy.critic_observation=privileged"
 fi
 OUT=${OUT:-outputs/experiments/${MODE}_sigma${SIGMA}}
