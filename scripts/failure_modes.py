@@ -4,6 +4,7 @@ The seeds start at 3,000,000, apart from the demonstrations', validation's (2,00
 so that looking at failures chooses nothing. Prints one JSON line per failed episode (its seed; how often the policy
 commanded the gripper closed; the end effector's nearest approach to the cube's centre; how far the cube slid and
 rose; the distance between them at the end) and a last line with the count. Deterministic actions, as in evaluation.
+An image policy sees the camera; the description reads the simulator's state either way.
     .venv/bin/python scripts/failure_modes.py --policy=<run>/checkpoints/best/pretrained_model --episodes=40
 """
 
@@ -41,12 +42,19 @@ def describe_episode(runner: PolicyRunner, env: LiftEnv, seed: int) -> dict:
             "final_distance_cm": round(100 * float(np.linalg.norm(eef_to_cube)), 1)}
 
 
+def observation_type(policy_config) -> str:
+    """The env's observations the policy reads: the camera only for a policy with an image input (rendering costs
+    most of a step)."""
+    return "pixels_agent_pos" if policy_config.image_features else "agent_pos"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", required=True, help="a pretrained_model folder")
     parser.add_argument("--episodes", type=int, default=40)
     args = parser.parse_args()
-    env, runner = LiftEnv(obs_type="agent_pos"), PolicyRunner(args.policy)
+    runner = PolicyRunner(args.policy)
+    env = LiftEnv(obs_type=observation_type(runner.config))
     failures = 0
     for i in range(args.episodes):
         episode = describe_episode(runner, env, ANALYSIS_SEED_OFFSET + i)

@@ -10,7 +10,7 @@ from lerobot_bcrl.envs.lift import LiftEnv
 from lerobot_bcrl.features import (CAMERA_NAME, ENV_STATE_CUBE_POS, ENV_STATE_DIM, ENV_STATE_EEF_TO_CUBE, LIFT_REWARD,
                                     STATE_DIM, STATE_EEF_POS)
 from lerobot_bcrl.rl.ppo import ANALYSIS_SEED_OFFSET
-from policy_fixtures import lowdim_dataset_root, save_untrained_checkpoint  # noqa: F401
+from policy_fixtures import image_dataset_root, lowdim_dataset_root, save_untrained_checkpoint  # noqa: F401
 
 NO_OP = np.array([0, 0, 0, 0, 0, 0, 1.0, -1.0])
 
@@ -205,9 +205,7 @@ def test_async_vector_env_in_forkserver_workers():
     vec.close()
 
 
-def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
-    """scripts/failure_modes.py's episode description, with actions we choose: the arm holds still, the gripper
-    closes twice; the nearest approach is the start's end-effector-to-cube distance, computed here from the poses."""
+def load_failure_modes_script():
     import importlib.util
     from pathlib import Path
 
@@ -215,6 +213,13 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
         "failure_modes", Path(__file__).resolve().parents[1] / "scripts" / "failure_modes.py")
     failure_modes = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(failure_modes)
+    return failure_modes
+
+
+def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
+    """scripts/failure_modes.py's episode description, with actions we choose: the arm holds still, the gripper
+    closes twice; the nearest approach is the start's end-effector-to-cube distance, computed here from the poses."""
+    failure_modes = load_failure_modes_script()
 
     gripper = [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, -1.0, -1.0]  # > 0 closes: two closings
 
@@ -240,6 +245,28 @@ def test_failure_modes_script_counts_closings_and_measures_from_the_cube():
     assert episode["nearest_cm"] == pytest.approx(start_distance_cm, rel=0.05)
     assert episode["final_distance_cm"] == pytest.approx(start_distance_cm, rel=0.05)
     assert episode["cube_rose_cm"] < 0.2 and episode["cube_slid_cm"] < 0.2
+
+
+def test_failure_modes_script_rolls_an_image_policy_out_on_the_camera(tmp_path, lowdim_dataset_root,  # noqa: F811
+                                                                      image_dataset_root):  # noqa: F811
+    """An image checkpoint gets the camera (a low-dim env has no frame for it to read) and a low-dim one does not;
+    the image policy's episode is still described from the simulator's state."""
+    from lerobot_bcrl.policy_runner import PolicyRunner
+
+    failure_modes = load_failure_modes_script()
+    save_untrained_checkpoint(lowdim_dataset_root, tmp_path / "lowdim")
+    save_untrained_checkpoint(image_dataset_root, tmp_path / "images")
+    assert failure_modes.observation_type(PolicyRunner(str(tmp_path / "lowdim")).config) == "agent_pos"
+    runner = PolicyRunner(str(tmp_path / "images"))
+    obs_type = failure_modes.observation_type(runner.config)
+    assert obs_type == "pixels_agent_pos"
+    env = LiftEnv(obs_type=obs_type, horizon=3)
+    try:
+        episode = failure_modes.describe_episode(runner, env, ANALYSIS_SEED_OFFSET)
+    finally:
+        env.close()
+    assert episode["seed"] == ANALYSIS_SEED_OFFSET and episode["lifted"] is False
+    assert 0 < episode["nearest_cm"] <= episode["final_distance_cm"] + 1e-9
 
 
 def test_expert_speed_script_lifts_sooner_with_faster_knobs_and_its_return_counts_the_lifted_steps(
