@@ -205,6 +205,10 @@ class PolicyExpert:
 
         self._runner = PolicyRunner(policy_path, device)
 
+    @property
+    def obs_type(self) -> str:
+        return self._runner.obs_type
+
     def reset(self) -> None:
         self._runner.reset()
 

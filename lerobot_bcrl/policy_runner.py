@@ -21,6 +21,12 @@ class PolicyRunner:
         self._preprocess_observation = preprocess_observation
         self._torch = torch
 
+    @property
+    def obs_type(self) -> str:
+        """The LiftEnv observations the policy reads: the camera only for a policy with an image input (rendering
+        costs most of a step)."""
+        return "pixels_agent_pos" if self.config.image_features else "agent_pos"
+
     def reset(self) -> None:
         self._policy.reset()
 

@@ -42,7 +42,8 @@ def main() -> None:
     args = parser.parse_args()
     knobs = {k: getattr(args, k) for k in KNOBS}
     expert = PolicyExpert(args.policy) if args.policy else ScriptedLiftExpert(**knobs)
-    env, no_noise = LiftEnv(obs_type="agent_pos"), DemonstratorConfig(noise_std=0.0)
+    env = LiftEnv(obs_type=expert.obs_type if args.policy else "agent_pos")
+    no_noise = DemonstratorConfig(noise_std=0.0)
     episodes = []
     for i in range(args.episodes):
         frames, stats = record_episode(env, expert, DemonstratorNoise(no_noise, controller.CONTROLLER_ACTION_DIM, i),

@@ -42,19 +42,13 @@ def describe_episode(runner: PolicyRunner, env: LiftEnv, seed: int) -> dict:
             "final_distance_cm": round(100 * float(np.linalg.norm(eef_to_cube)), 1)}
 
 
-def observation_type(policy_config) -> str:
-    """The env's observations the policy reads: the camera only for a policy with an image input (rendering costs
-    most of a step)."""
-    return "pixels_agent_pos" if policy_config.image_features else "agent_pos"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", required=True, help="a pretrained_model folder")
     parser.add_argument("--episodes", type=int, default=40)
     args = parser.parse_args()
     runner = PolicyRunner(args.policy)
-    env = LiftEnv(obs_type=observation_type(runner.config))
+    env = LiftEnv(obs_type=runner.obs_type)
     failures = 0
     for i in range(args.episodes):
         episode = describe_episode(runner, env, ANALYSIS_SEED_OFFSET + i)

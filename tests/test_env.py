@@ -256,11 +256,10 @@ def test_failure_modes_script_rolls_an_image_policy_out_on_the_camera(tmp_path, 
     failure_modes = load_failure_modes_script()
     save_untrained_checkpoint(lowdim_dataset_root, tmp_path / "lowdim")
     save_untrained_checkpoint(image_dataset_root, tmp_path / "images")
-    assert failure_modes.observation_type(PolicyRunner(str(tmp_path / "lowdim")).config) == "agent_pos"
+    assert PolicyRunner(str(tmp_path / "lowdim")).obs_type == "agent_pos"
     runner = PolicyRunner(str(tmp_path / "images"))
-    obs_type = failure_modes.observation_type(runner.config)
-    assert obs_type == "pixels_agent_pos"
-    env = LiftEnv(obs_type=obs_type, horizon=3)
+    assert runner.obs_type == "pixels_agent_pos"
+    env = LiftEnv(obs_type=runner.obs_type, horizon=3)
     try:
         episode = failure_modes.describe_episode(runner, env, ANALYSIS_SEED_OFFSET)
     finally:
